@@ -1,0 +1,224 @@
+//! Accuracy figures against a known truth (SPEC §3): RMSE per state element and the average
+//! NEES with its resolution floor.
+
+use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
+use serde::Serialize;
+
+/// Running sums over the scored `(t, i)` terms.
+#[derive(Debug, Clone)]
+pub struct Accuracy {
+    n: usize,
+    sum_sq: Vec<f64>,
+    terms: u64,
+    nees_sum: f64,
+    nees_terms: u64,
+    left_out: u64,
+    infinite: u64,
+    /// Scratch: the error `x − x̂` and, per eigenpair of `P`, `(u_kᵀ e, λ_k)`.
+    e: Vec<f64>,
+    proj: Vec<(f64, f64)>,
+}
+
+/// `(u_kᵀ e, λ_k)` for the eigenpairs of `P` (`N × N`, column-major), on the stack.
+macro_rules! projections {
+    ($n:literal, $e:expr, $p:expr, $out:expr) => {{
+        let eig = SymmetricEigen::new(SMatrix::<f64, $n, $n>::from_column_slice($p));
+        let e = SVector::<f64, $n>::from_column_slice($e);
+        for k in 0..$n {
+            $out[k] = (eig.eigenvectors.column(k).dot(&e), eig.eigenvalues[k]);
+        }
+    }};
+}
+
+/// The accuracy of one run (or many), as reported.
+#[derive(Debug, Clone, Serialize)]
+pub struct AccuracyReport {
+    /// RMSE of each state element over every scored `(t, i)`.
+    pub rmse: Vec<f64>,
+    /// `sqrt(mean ‖x − x̂‖² / n)`.
+    pub rmse_overall: f64,
+    /// Average NEES over the resolved terms; `None` (JSON `null`) when infinite.
+    pub anees: Option<f64>,
+    /// 95 % band of the ANEES of a consistent filter, `χ²_{Kn}(0.025, 0.975) / (Kn)`.
+    pub anees_band: [f64; 2],
+    /// Number of scored `(t, i)`.
+    pub terms: u64,
+    /// Terms in the ANEES.
+    pub nees_terms: u64,
+    /// Terms left out under the resolution floor (SPEC §3).
+    pub nees_left_out: u64,
+    /// Terms with a resolved error against a zero claimed variance.
+    pub nees_infinite: u64,
+}
+
+impl Accuracy {
+    pub fn new(n: usize) -> Self {
+        Self {
+            n,
+            sum_sq: vec![0.0; n],
+            terms: 0,
+            nees_sum: 0.0,
+            nees_terms: 0,
+            left_out: 0,
+            infinite: 0,
+            e: Vec::with_capacity(n),
+            proj: vec![(0.0, 0.0); n],
+        }
+    }
+
+    /// Scores one estimate `x̂` with reported covariance `P` (column-major `n × n`) against
+    /// the true `x`. The NEES term is `Σ_k c_k² / λ_k / n` with `P = Σ λ_k u_k u_kᵀ`,
+    /// `c_k = u_kᵀ (x − x̂)`; it is left out when some `k` has `|c_k| < ρ` and `λ_k < ρ²`,
+    /// `ρ = 10³ ε max(1, ‖x‖∞)`, and infinite when a resolved `c_k` meets `λ_k ≤ 0`.
+    pub fn add(&mut self, x: &[f64], x_hat: &[f64], p: &[f64]) {
+        let n = self.n;
+        self.e.clear();
+        self.e.extend(x.iter().zip(x_hat).map(|(a, b)| a - b));
+        for k in 0..n {
+            self.sum_sq[k] += self.e[k] * self.e[k];
+        }
+        self.terms += 1;
+        // Stack-allocated eigendecompositions for the common sizes.
+        match n {
+            1 => projections!(1, &self.e, p, self.proj),
+            2 => projections!(2, &self.e, p, self.proj),
+            3 => projections!(3, &self.e, p, self.proj),
+            4 => projections!(4, &self.e, p, self.proj),
+            _ => {
+                let eig = SymmetricEigen::new(DMatrix::from_column_slice(n, n, p));
+                for k in 0..n {
+                    let c = eig
+                        .eigenvectors
+                        .column(k)
+                        .iter()
+                        .zip(&self.e)
+                        .map(|(u, e)| u * e)
+                        .sum();
+                    self.proj[k] = (c, eig.eigenvalues[k]);
+                }
+            }
+        }
+        let rho = 1e3 * f64::EPSILON * x.iter().fold(1.0f64, |a, v| a.max(v.abs()));
+        let mut nees = 0.0;
+        let mut infinite = false;
+        for &(c, lambda) in &self.proj {
+            if c.abs() < rho && lambda < rho * rho {
+                self.left_out += 1;
+                return;
+            }
+            if lambda <= 0.0 {
+                infinite = true;
+            } else {
+                nees += c * c / lambda;
+            }
+        }
+        if infinite {
+            self.infinite += 1;
+        } else {
+            self.nees_sum += nees / n as f64;
+            self.nees_terms += 1;
+        }
+    }
+
+    /// Adds another set of sums (e.g. from another Monte Carlo run).
+    pub fn merge(&mut self, other: &Accuracy) {
+        for (a, b) in self.sum_sq.iter_mut().zip(&other.sum_sq) {
+            *a += b;
+        }
+        self.terms += other.terms;
+        self.nees_sum += other.nees_sum;
+        self.nees_terms += other.nees_terms;
+        self.left_out += other.left_out;
+        self.infinite += other.infinite;
+    }
+
+    pub fn report(&self) -> AccuracyReport {
+        let k = self.terms.max(1) as f64;
+        let rmse: Vec<f64> = self.sum_sq.iter().map(|s| (s / k).sqrt()).collect();
+        let rmse_overall = (self.sum_sq.iter().sum::<f64>() / (k * self.n as f64)).sqrt();
+        let anees = if self.infinite > 0 {
+            None
+        } else {
+            Some(self.nees_sum / self.nees_terms.max(1) as f64)
+        };
+        AccuracyReport {
+            rmse,
+            rmse_overall,
+            anees,
+            anees_band: chi2_mean_band(self.nees_terms * self.n as u64),
+            terms: self.terms,
+            nees_terms: self.nees_terms,
+            nees_left_out: self.left_out,
+            nees_infinite: self.infinite,
+        }
+    }
+}
+
+/// The 95 % band of `χ²_k / k` by the Wilson–Hilferty approximation
+/// `(1 − 2/(9k) ± 1.96 √(2/(9k)))³` (relative error below 1e−3 for `k ≥ 30`).
+pub fn chi2_mean_band(k: u64) -> [f64; 2] {
+    if k == 0 {
+        return [f64::NAN, f64::NAN];
+    }
+    let a = 2.0 / (9.0 * k as f64);
+    let z = 1.959_963_984_540_054;
+    [
+        (1.0 - a - z * a.sqrt()).max(0.0).powi(3),
+        (1.0 - a + z * a.sqrt()).powi(3),
+    ]
+}
+
+impl AccuracyReport {
+    /// One line for standard error.
+    pub fn summary(&self) -> String {
+        let rmse: Vec<String> = self
+            .rmse
+            .iter()
+            .enumerate()
+            .map(|(k, r)| format!("x{} {r:.4e}", k + 1))
+            .collect();
+        let anees = match self.anees {
+            Some(a) => format!("{a:.4}"),
+            None => "inf".into(),
+        };
+        format!(
+            "RMSE {} (overall {:.4e}) over {} terms; average NEES {anees} (95 % band of a consistent filter [{:.4}, {:.4}])",
+            rmse.join(", "),
+            self.rmse_overall,
+            self.terms,
+            self.anees_band[0],
+            self.anees_band[1]
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chi2_band_matches_tables() {
+        // χ²_100 quantiles 74.222 and 129.561 (standard tables).
+        let [lo, hi] = chi2_mean_band(100);
+        assert!(
+            (lo - 0.74222).abs() < 2e-3 && (hi - 1.29561).abs() < 2e-3,
+            "{lo} {hi}"
+        );
+    }
+
+    #[test]
+    fn nees_of_known_terms() {
+        let mut acc = Accuracy::new(2);
+        // P = diag(4, 1), e = (2, 1): NEES = (1 + 1) / 2 = 1.
+        acc.add(&[3.0, 1.0], &[1.0, 0.0], &[4.0, 0.0, 0.0, 1.0]);
+        // Unresolved: zero error and zero variance in one direction.
+        acc.add(&[1.0, 1.0], &[1.0, 1.0], &[0.0, 0.0, 0.0, 1.0]);
+        let r = acc.report();
+        assert_eq!((r.nees_terms, r.nees_left_out, r.nees_infinite), (1, 1, 0));
+        assert!((r.anees.unwrap() - 1.0).abs() < 1e-15);
+        // A resolved error against a zero variance is an infinite overconfidence.
+        acc.add(&[1.0, 1.0], &[0.0, 1.0], &[0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(acc.report().anees, None);
+        assert!((acc.report().rmse[0] - (5.0f64 / 3.0).sqrt()).abs() < 1e-15);
+    }
+}

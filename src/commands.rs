@@ -1,0 +1,526 @@
+//! The commands behind the command line: each reads its inputs, runs the library and writes
+//! its outputs. Warnings go to standard error through [`warn`]; data to standard output or files.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+
+use sha2::Digest;
+
+use crate::accuracy::{Accuracy, AccuracyReport};
+use crate::cli::FilterKind;
+use crate::cli::{Command, EstimateArgs, EvaluateArgs, SimulateArgs};
+use crate::config::ConfigSource;
+use crate::error::Error;
+use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, TwoStepOptions, two_step};
+use crate::inputs::{InputStream, open_csv};
+use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
+use crate::io::estimates::{EstimatesWriter, Format};
+use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
+use crate::lifted::spectral_radius;
+use crate::model::{MATRIX_KEYS, Model};
+use crate::simulate::simulate;
+
+/// Power-iteration steps for the spectral radius: `check` takes its time, `estimate` only
+/// wants a quick stability warning.
+const CHECK_POWER_STEPS: usize = 4000;
+const ESTIMATE_POWER_STEPS: usize = 400;
+/// Above this many lifted states `estimate` skips its stability check (`check` still does it).
+const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
+
+/// Prints a warning line on standard error (SPEC §7).
+pub fn warn(msg: impl std::fmt::Display) {
+    eprintln!("warning: {msg}");
+}
+
+/// Runs one command.
+pub fn run(command: Command) -> Result<()> {
+    match command {
+        Command::Check { config } => check(&config),
+        Command::Simulate(args) => simulate_command(&args),
+        Command::Estimate(args) => estimate(&args),
+        Command::Evaluate(args) => evaluate_command(&args),
+    }
+}
+
+/// Reads and validates a config file.
+pub fn load_model(path: &Path) -> Result<(ConfigSource, Model)> {
+    let src = ConfigSource::from_file(path)?;
+    let model = Model::from_config(&src)?;
+    Ok((src, model))
+}
+
+fn check(path: &Path) -> Result<()> {
+    let (_, model) = load_model(path)?;
+    let d = model.dims;
+    // Everything simulate reads: the inputs file too.
+    let mut inputs = InputStream::open(&model, None)?;
+    let mut u = vec![0.0; model.subsystems * d.m];
+    for t in 1..=model.steps {
+        inputs.next(t, &mut u)?;
+    }
+    inputs.finish(model.steps)?;
+
+    let mut report: Vec<String> = Vec::new();
+    let mut warnings: Vec<String> = Vec::new();
+    report.push(format!("config: {}", path.display()));
+    report.push(format!(
+        "chain: N = {} subsystems, T = {} steps",
+        model.subsystems, model.steps
+    ));
+    report.push(format!(
+        "dimensions: n = {}, m = {}, q = {}, plus = {}, minus = {}",
+        d.n, d.m, d.q, d.plus, d.minus
+    ));
+    let mut varying = Vec::new();
+    for key in MATRIX_KEYS.iter().copied().chain(["p"]) {
+        let (time, space) = model.variation(key);
+        let how = match (time, space) {
+            (true, true) => "time and space",
+            (true, false) => "time",
+            (false, true) => "space",
+            (false, false) => continue,
+        };
+        varying.push(format!("{key} ({how})"));
+    }
+    report.push(format!(
+        "varying parameters: {}",
+        if varying.is_empty() {
+            "none".to_string()
+        } else {
+            varying.join(", ")
+        }
+    ));
+    report.push(format!(
+        "process noise: {}",
+        if model.q_is_zero() {
+            "Q = 0 (the paper's setting)"
+        } else {
+            "Q > 0"
+        }
+    ));
+    let windows = model.windows();
+    for (k, w) in windows.iter().enumerate() {
+        if w.first > model.steps {
+            break;
+        }
+        let last = windows
+            .get(k + 1)
+            .map_or(model.steps, |n| (n.first - 1).min(model.steps));
+        let solver = ChainSolver::new(&model, w.first)?;
+        let rho = spectral_radius(&model, w.first, CHECK_POWER_STEPS)?;
+        report.push(format!(
+            "t = {}..{}: interconnection condition estimate {:.3e} (1-norm), spectral radius of A_eff {:.6} ({})",
+            w.first,
+            last,
+            solver.condition(),
+            rho.value,
+            if rho.exact {
+                "exact"
+            } else {
+                "power-iteration estimate"
+            }
+        ));
+        if rho.value >= 1.0 {
+            warnings.push(format!(
+                "t = {}..{last}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (SPEC §3)",
+                w.first, rho.value
+            ));
+        }
+    }
+    // Print only once everything passed, so that a bad config prints nothing on stdout.
+    for line in report {
+        println!("{line}");
+    }
+    for w in warnings {
+        warn(w);
+    }
+    Ok(())
+}
+
+fn simulate_command(args: &SimulateArgs) -> Result<()> {
+    let (src, model) = load_model(&args.config)?;
+    // Fail on an ill-posed chain or unusable inputs before creating anything.
+    for w in model.windows().iter().filter(|w| w.first <= model.steps) {
+        ChainSolver::new(&model, w.first)?;
+    }
+    let mut inputs = InputStream::open(&model, None)?;
+    let out_dir = &args.out;
+    if out_dir.exists() && !out_dir.is_dir() {
+        return Err(Error::Usage(format!(
+            "--out {}: exists and is not a folder",
+            out_dir.display()
+        ))
+        .into());
+    }
+    std::fs::create_dir_all(out_dir).map_err(|e| {
+        Error::Usage(format!(
+            "--out {}: cannot create the folder: {e}",
+            out_dir.display()
+        ))
+    })?;
+    let seed = args.seed.unwrap_or(model.seed);
+    let d = model.dims;
+    let file = |name: &str| -> Result<Output> { Ok(Output::create(&out_dir.join(name))?) };
+    let header = |prefix: &str, width: usize, extra: &[&str]| -> Vec<String> {
+        let mut h = vec!["t".to_string(), "i".to_string()];
+        h.extend((1..=width).map(|k| format!("{prefix}{k}")));
+        h.extend(extra.iter().map(|s| s.to_string()));
+        h
+    };
+    let io_err = |name: &'static str| move |e| Error::io(name, e);
+    let mut truth = CsvWriter::new(file("truth.csv")?, &header("x", d.n, &["gamma"]))
+        .map_err(io_err("truth.csv"))?;
+    let mut meas = CsvWriter::new(file("measurements.csv")?, &header("y", d.q, &[]))
+        .map_err(io_err("measurements.csv"))?;
+    let mut inputs_out = if d.m > 0 {
+        Some(
+            CsvWriter::new(file("inputs.csv")?, &header("u", d.m, &[]))
+                .map_err(io_err("inputs.csv"))?,
+        )
+    } else {
+        None
+    };
+    let mut record_out = file(RunRecord::FILE)?;
+
+    let mut y_row = vec![0.0; d.q];
+    simulate(&model, model.steps, seed, &mut inputs, |step| {
+        for i in 0..model.subsystems {
+            let gamma = step.gamma[i];
+            truth
+                .row(
+                    step.t,
+                    i + 1,
+                    &step.x[i * d.n..(i + 1) * d.n],
+                    Some(gamma as u8),
+                )
+                .map_err(|e| Error::io("truth.csv", e))?;
+            y_row.copy_from_slice(&step.y[i * d.q..(i + 1) * d.q]);
+            if args.mark_missing && !gamma {
+                y_row.fill(f64::NAN);
+            }
+            meas.row(step.t, i + 1, &y_row, None)
+                .map_err(|e| Error::io("measurements.csv", e))?;
+            if let Some(w) = inputs_out.as_mut() {
+                w.row(step.t, i + 1, &step.u[i * d.m..(i + 1) * d.m], None)
+                    .map_err(|e| Error::io("inputs.csv", e))?;
+            }
+        }
+        Ok(())
+    })?;
+    inputs.finish(model.steps)?;
+
+    let mut files = vec!["truth.csv".to_string(), "measurements.csv".to_string()];
+    if d.m > 0 {
+        files.push("inputs.csv".into());
+    }
+    let config_dir = RunRecord::relative_dir(out_dir, &src.dir);
+    let record = RunRecord {
+        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
+        seed,
+        subsystems: model.subsystems,
+        steps: model.steps,
+        mark_missing: args.mark_missing,
+        config_path: args.config.display().to_string(),
+        config_dir,
+        config_toml: src.text.clone(),
+        config: src.raw.clone(),
+        files,
+    };
+    serde_json::to_writer_pretty(&mut record_out, &record).context("writing run.json")?;
+    std::io::Write::write_all(&mut record_out, b"\n").map_err(|e| Error::io("run.json", e))?;
+
+    truth
+        .into_inner()
+        .map_err(|e| Error::io("truth.csv", e))?
+        .commit()?;
+    meas.into_inner()
+        .map_err(|e| Error::io("measurements.csv", e))?
+        .commit()?;
+    if let Some(w) = inputs_out {
+        w.into_inner()
+            .map_err(|e| Error::io("inputs.csv", e))?
+            .commit()?;
+    }
+    record_out.commit()?;
+    Ok(())
+}
+
+/// The measurement file's layout: `t,i,y1..yq`; empty cells only in the known-dropout mode.
+fn measurement_layout(q: usize, dropouts: Dropouts) -> StepLayout {
+    StepLayout {
+        prefix: "y",
+        width: q,
+        extra: &[],
+        allow_empty: dropouts == Dropouts::Known,
+        empty_hint: " (a lost measurement? pass --dropouts known to skip empty cells)",
+    }
+}
+
+/// The truth file's layout: `t,i,x1..xn,gamma`.
+fn truth_layout(n: usize) -> StepLayout {
+    StepLayout {
+        prefix: "x",
+        width: n,
+        extra: &["gamma"],
+        allow_empty: false,
+        empty_hint: "",
+    }
+}
+
+/// The config of an `estimate` run: `--config`, else the `run.json` beside `--meas`. Also
+/// returns the folder of that run record, if one was used.
+fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>)> {
+    if let Some(path) = &args.config {
+        return Ok((ConfigSource::from_file(path)?, None));
+    }
+    let missing = || {
+        Error::Usage(format!(
+            "--config is required: {} has no {} beside it (one written by `sisfilt simulate`)",
+            args.meas.display(),
+            RunRecord::FILE
+        ))
+    };
+    if args.meas.as_os_str() == "-" {
+        return Err(Error::Usage(
+            "--config is required when the measurements come from standard input".into(),
+        )
+        .into());
+    }
+    let dir = match args.meas.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
+    Ok((record.config_source(&dir.join(RunRecord::FILE))?, Some(dir)))
+}
+
+fn sha256_hex(text: &str) -> String {
+    sha2::Sha256::digest(text.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+fn estimate(args: &EstimateArgs) -> Result<()> {
+    let (src, run_dir) = estimate_config(args)?;
+    let model = Model::from_config(&src)?;
+    let d = model.dims;
+    let (n, big_n) = (d.n, model.subsystems);
+
+    let mut opts = if args.paper {
+        TwoStepOptions::paper()
+    } else {
+        TwoStepOptions::default()
+    };
+    opts.solver = args.solver.unwrap_or(opts.solver);
+    opts.second_moment = args.second_moment.unwrap_or(opts.second_moment);
+    opts.interconnect_from = args.interconnect_from.unwrap_or(opts.interconnect_from);
+    opts.dropouts = args.dropouts;
+
+    let inputs_file = args.inputs.clone().or_else(|| {
+        run_dir
+            .as_ref()
+            .map(|dir| dir.join("inputs.csv"))
+            .filter(|p| d.m > 0 && p.is_file())
+    });
+    let mut inputs = InputStream::open(&model, inputs_file.as_deref())?;
+    let mut meas = open_csv(&args.meas, measurement_layout(d.q, opts.dropouts), big_n)?;
+    let mut truth = args
+        .truth
+        .as_ref()
+        .map(|p| open_csv(p, truth_layout(n), big_n))
+        .transpose()?;
+    let format = args.format.unwrap_or(
+        if args
+            .out
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+        {
+            Format::Json
+        } else {
+            Format::Csv
+        },
+    );
+    // Open the output before the long run, so that a bad path fails fast.
+    let output = Output::create(&args.out)?;
+
+    if model.q_is_zero() && model.is_coupled() {
+        warn(
+            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (SPEC §3)",
+        );
+    }
+    if opts.dropouts == Dropouts::Unknown && big_n * n <= ESTIMATE_STABILITY_CHECK_MAX {
+        let rho = spectral_radius(&model, 1, ESTIMATE_POWER_STEPS)?;
+        if rho.value >= 1.0 {
+            warn(format!(
+                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (SPEC §3)",
+                rho.value
+            ));
+        }
+    }
+
+    let metadata = serde_json::json!({
+        "sisfilt_version": env!("CARGO_PKG_VERSION"),
+        "config": { "path": src.name, "sha256": sha256_hex(&src.text) },
+        "measurements": args.meas.display().to_string(),
+        "inputs": inputs_file.as_ref().map(|p| p.display().to_string()),
+        "options": {
+            "filter": args.filter,
+            "solver": opts.solver,
+            "second_moment": opts.second_moment,
+            "interconnect_from": opts.interconnect_from,
+            "dropouts": opts.dropouts,
+            "paper": args.paper,
+            "output": if args.predicted { "predicted" } else { "filtered" },
+        },
+        "subsystems": big_n,
+        "n": n,
+    });
+    let mut writer = EstimatesWriter::new(output, format, n, metadata)?;
+    let out_name = args.out.display().to_string();
+
+    let mut filter: Box<dyn ChainFilter> = match args.filter {
+        FilterKind::Distributed => two_step(&model, opts)?,
+        FilterKind::Centralized => Box::new(CentralizedFilter::new(
+            &model,
+            opts.dropouts == Dropouts::Known,
+            args.max_lifted,
+        )?),
+    };
+    let mut y = vec![0.0; meas.row_values()];
+    let mut u = vec![0.0; big_n * d.m];
+    let mut x_true = vec![0.0; big_n * (n + 1)];
+    let mut accuracy = Accuracy::new(n);
+    // With --predicted, row t is scored against the truth at t + 1.
+    let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
+    let mut warned_transfer = false;
+    let mut steps = 0;
+    while let Some(t) = meas.read_step(&mut y)? {
+        inputs.next(t, &mut u)?;
+        filter.step(&y, &u)?;
+        if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
+            warned_transfer = true;
+            warn(format!(
+                "the transfer solver's estimated relative error is {:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use --solver banded",
+                filter.solver_error_estimate()
+            ));
+        }
+        let (x_hat, p_hat) = if args.predicted {
+            filter.predicted()
+        } else {
+            filter.filtered()
+        };
+        for i in 0..big_n {
+            writer
+                .row(
+                    t,
+                    i + 1,
+                    &x_hat[i * n..(i + 1) * n],
+                    &p_hat[i * n * n..(i + 1) * n * n],
+                )
+                .map_err(|e| Error::io(&out_name, e))?;
+        }
+        if let Some(truth) = truth.as_mut() {
+            if truth.read_step(&mut x_true)?.is_none() {
+                return Err(Error::File {
+                    file: truth.name().to_string(),
+                    msg: format!(
+                        "ends before t = {t}; the truth must cover every step of the measurements"
+                    ),
+                }
+                .into());
+            }
+            let scored = match (args.predicted, t > 1) {
+                (false, _) => Some((x_hat, p_hat)),
+                (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
+                (true, false) => None,
+            };
+            if let Some((xs, ps)) = scored {
+                for i in 0..big_n {
+                    accuracy.add(
+                        &x_true[i * (n + 1)..i * (n + 1) + n],
+                        &xs[i * n..(i + 1) * n],
+                        &ps[i * n * n..(i + 1) * n * n],
+                    );
+                }
+            }
+            if args.predicted {
+                prev_x.copy_from_slice(x_hat);
+                prev_p.copy_from_slice(p_hat);
+            }
+        }
+        steps = t;
+    }
+    if steps == 0 {
+        return Err(Error::File {
+            file: meas.name().to_string(),
+            msg: "holds no measurement rows".into(),
+        }
+        .into());
+    }
+    inputs.finish(steps)?;
+    let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
+    if let Some(r) = &report {
+        report_accuracy(r);
+    }
+    writer.finish(report.as_ref())?;
+    Ok(())
+}
+
+/// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
+fn report_accuracy(r: &AccuracyReport) {
+    eprintln!("accuracy: {}", r.summary());
+    if r.nees_left_out > 0 {
+        warn(format!(
+            "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
+            r.nees_left_out, r.terms
+        ));
+    }
+    if r.nees_infinite > 0 {
+        warn(format!(
+            "NEES: {} terms have a resolved error against a zero claimed variance: the average NEES is infinite",
+            r.nees_infinite
+        ));
+    }
+}
+
+fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
+    use std::io::IsTerminal;
+    let (_, model) = load_model(&args.config)?;
+    let mut out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
+    let opts = crate::evaluate::EvaluateOptions {
+        runs: args.runs,
+        seed: args.seed.unwrap_or(model.seed),
+        burn_in: args.burn_in,
+        max_lifted: args.max_lifted,
+    };
+    let bar = if std::io::stderr().is_terminal() {
+        indicatif::ProgressBar::new(args.runs as u64)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let result =
+        crate::evaluate::evaluate(&model, &args.config.display().to_string(), opts, || {
+            bar.inc(1)
+        })?;
+    bar.finish_and_clear();
+    print!("{}", result.table());
+    for f in &result.filters {
+        if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
+            warn(format!(
+                "NEES of {}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
+                f.name, a.nees_left_out, a.terms
+            ));
+        }
+    }
+    if let Some(out) = out.as_mut() {
+        let name = out.name();
+        serde_json::to_writer_pretty(&mut *out, &result).context("writing the evaluation")?;
+        std::io::Write::write_all(out, b"\n").map_err(|e| Error::io(&name, e))?;
+    }
+    if let Some(out) = out {
+        out.commit()?;
+    }
+    Ok(())
+}

@@ -1,0 +1,89 @@
+//! Typed errors of the library. Each variant knows whether it is bad input (exit 2) or an
+//! internal failure (exit 1); the binary maps them with [`Error::exit_code`].
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong inside `sisfilt`.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A config value is invalid; `key` is the TOML key path (e.g. `model.B`).
+    #[error("{file}: {key}: {msg}")]
+    Config {
+        file: String,
+        key: String,
+        msg: String,
+    },
+
+    /// The TOML could not be parsed (syntax, type, unknown or missing key).
+    #[error("{file}: line {line}: {msg}")]
+    ConfigSyntax {
+        file: String,
+        line: usize,
+        msg: String,
+    },
+
+    /// A CSV file is malformed; `line` is 1-based and counts the header.
+    #[error("{file}: line {line}: {msg}")]
+    Csv {
+        file: String,
+        line: u64,
+        msg: String,
+    },
+
+    /// An input file as a whole is unusable (missing rows at the end, wrong size).
+    #[error("{file}: {msg}")]
+    File { file: String, msg: String },
+
+    /// A command-line argument is unusable.
+    #[error("{0}")]
+    Usage(String),
+
+    /// The interconnection equations (SPEC §2) of a config have no unique solution at `t`.
+    #[error("{file}: interconnection system at t = {t} is not well posed: {msg}")]
+    IllPosed { file: String, t: usize, msg: String },
+
+    /// Reading or writing a file failed. (`err` is not a `#[source]`: the message already
+    /// says it, and `{:#}` would print it twice.)
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
+
+    /// The numerics broke down on a valid config (e.g. an innovation covariance that is not
+    /// positive definite).
+    #[error("t = {t}, i = {i}: {msg}")]
+    Numerical { t: usize, i: usize, msg: String },
+}
+
+impl Error {
+    /// 2 for bad input (config, CSV, arguments), 1 for internal failure (SPEC §7).
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            Error::Numerical { .. } => 1,
+            Error::Io { err: source, .. } if source.kind() != std::io::ErrorKind::NotFound => {
+                if matches!(
+                    source.kind(),
+                    std::io::ErrorKind::PermissionDenied
+                        | std::io::ErrorKind::NotADirectory
+                        | std::io::ErrorKind::IsADirectory
+                        | std::io::ErrorKind::AlreadyExists
+                        | std::io::ErrorKind::InvalidInput
+                        | std::io::ErrorKind::InvalidData
+                ) {
+                    2
+                } else {
+                    1
+                }
+            }
+            _ => 2,
+        }
+    }
+
+    pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.into(),
+            err: source,
+        }
+    }
+}
+
+/// Result with the library's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;

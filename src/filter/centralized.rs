@@ -1,0 +1,309 @@
+//! The centralized reference filter of SPEC §5: the Nahi filter on the lifted system
+//! `X⁺ = A_eff X + U_eff U + Ω`, `Y = Γ blkdiag(J) X + blkdiag(R) U + D_n`, with
+//! `H = 𝒫 blkdiag(J)`, `𝒫 = blkdiag(p_i I_q)`, and
+//! `R_eff = M_big + blkdiag(p_i(1−p_i) J S_ii Jᵀ)` from the exact lifted moments. It is the
+//! optimal linear estimator for the unknown-dropout model; in the known-dropout mode it is the
+//! ordinary Kalman filter of the lifted system on the observed rows. `O((Nn)³)` per step: a
+//! yardstick for the distributed filter, not the default.
+
+use nalgebra::DMatrix;
+
+use crate::error::{Error, Result};
+use crate::filter::ChainFilter;
+use crate::filter::nahi::{self, CovarianceForm, Workspace};
+use crate::lifted::{LiftedMoments, LiftedSystem};
+use crate::model::Model;
+
+/// Default largest lifted state size `N·n` the centralized filter accepts.
+pub const DEFAULT_MAX_LIFTED: usize = 1000;
+
+/// The centralized filter's state.
+pub struct CentralizedFilter<'m> {
+    model: &'m Model,
+    known: bool,
+    t: usize,
+    sys: LiftedSystem,
+    moments: Option<LiftedMoments>,
+    x_pred: Vec<f64>,
+    t_pred: Vec<f64>,
+    x_filt: Vec<f64>,
+    p_filt: Vec<f64>,
+    ws: Workspace,
+    s_ii: DMatrix<f64>,
+    js: DMatrix<f64>,
+    /// Per-subsystem diagonal blocks of the last output, `N·n²` values.
+    block_filt: Vec<f64>,
+    block_pred: Vec<f64>,
+}
+
+impl<'m> CentralizedFilter<'m> {
+    /// Starts from `X̂(1) = [m0; …]`, `T(1) = blkdiag(P0)`. Refuses chains with
+    /// `N·n > max_lifted`.
+    pub fn new(model: &'m Model, known: bool, max_lifted: usize) -> Result<Self> {
+        let d = model.dims;
+        let (n, big_n) = (d.n, model.subsystems);
+        let size = big_n * n;
+        if size > max_lifted {
+            return Err(Error::Usage(format!(
+                "the centralized filter works on the lifted state of size N·n = {size}, above the limit {max_lifted} (it costs O((N·n)³) per step); raise --max-lifted to run it anyway"
+            )));
+        }
+        let init = LiftedMoments::initial(model);
+        let x_pred = init.mean.as_slice().to_vec();
+        let t_pred = init.cov.as_slice().to_vec();
+        Ok(Self {
+            model,
+            known,
+            t: 1,
+            sys: LiftedSystem::new(model, 1)?,
+            moments: (!known).then_some(init),
+            x_filt: x_pred.clone(),
+            p_filt: t_pred.clone(),
+            x_pred,
+            t_pred,
+            ws: Workspace::new(size, big_n * d.q),
+            s_ii: DMatrix::zeros(n, n),
+            js: DMatrix::zeros(d.q, n),
+            block_filt: vec![0.0; big_n * n * n],
+            block_pred: vec![0.0; big_n * n * n],
+        })
+    }
+
+    fn diagonal_blocks(cov: &[f64], size: usize, n: usize, out: &mut [f64]) {
+        for i in 0..size / n {
+            for c in 0..n {
+                for r in 0..n {
+                    out[i * n * n + c * n + r] = cov[(i * n + c) * size + i * n + r];
+                }
+            }
+        }
+    }
+}
+
+impl ChainFilter for CentralizedFilter<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let d = model.dims;
+        let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
+        let size = big_n * n;
+        let t = self.t;
+        self.sys.prepare(model, t)?;
+        let window = model.window(t);
+        {
+            let (h, reff, innov) = self.ws.measurement_mut();
+            h.fill(0.0);
+            reff.fill(0.0);
+            for i in 0..big_n {
+                let prm = model.param_set(window.ids[i]);
+                let p = if self.known { 1.0 } else { window.p[i] };
+                let mut hb = h.view_mut((i * q, i * n), (q, n));
+                hb.copy_from(&prm.J);
+                hb.scale_mut(p);
+                let mut rb = reff.view_mut((i * q, i * q), (q, q));
+                rb.copy_from(&prm.M);
+                if let Some(mom) = &self.moments {
+                    if p * (1.0 - p) != 0.0 {
+                        mom.second_moment(i, n, &mut self.s_ii);
+                        self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
+                        rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
+                    }
+                }
+                for k in 0..q {
+                    let mut acc = y[i * q + k];
+                    for c in 0..m {
+                        acc -= prm.R[(k, c)] * u[i * m + c];
+                    }
+                    for c in 0..n {
+                        acc -= hb[(k, c)] * self.x_pred[i * n + c];
+                    }
+                    innov[i * q + k] = acc;
+                }
+            }
+        }
+        if self.known {
+            for k in 0..big_n * q {
+                if y[k].is_nan() {
+                    self.ws.drop_row(k);
+                }
+            }
+        }
+        let ok = nahi::kalman_update(
+            &self.x_pred,
+            &self.t_pred,
+            &mut self.x_filt,
+            &mut self.p_filt,
+            CovarianceForm::Standard,
+            &mut self.ws,
+        );
+        if !ok {
+            return Err(Error::Numerical {
+                t,
+                i: 0,
+                msg: "the centralized filter's innovation covariance is not positive definite"
+                    .into(),
+            });
+        }
+        // Predict: X̂⁺ = A_eff X̂(t|t) + U_eff U, T⁺ = A_eff P A_effᵀ + Q_big.
+        {
+            let mut xp = nalgebra::DVectorViewMut::from_slice(&mut self.x_pred, size);
+            let xf = nalgebra::DVectorView::from_slice(&self.x_filt, size);
+            xp.gemv(1.0, &self.sys.a_eff, &xf, 0.0);
+            let uu = nalgebra::DVectorView::from_slice(u, u.len());
+            xp.gemv(1.0, &self.sys.u_eff, &uu, 1.0);
+        }
+        nahi::propagate_cov(
+            &self.sys.a_eff,
+            &self.p_filt,
+            Some(&self.sys.q_big),
+            &mut self.t_pred,
+            &mut self.ws,
+        );
+        if let Some(mom) = &mut self.moments {
+            mom.propagate(&self.sys, u);
+        }
+        Self::diagonal_blocks(&self.p_filt, size, n, &mut self.block_filt);
+        Self::diagonal_blocks(&self.t_pred, size, n, &mut self.block_pred);
+        self.t += 1;
+        Ok(())
+    }
+
+    fn filtered(&self) -> (&[f64], &[f64]) {
+        (&self.x_filt, &self.block_filt)
+    }
+
+    fn predicted(&self) -> (&[f64], &[f64]) {
+        (&self.x_pred, &self.block_pred)
+    }
+}
+
+/// The covariance pass of the unknown-dropout centralized filter, stored per step. Its gains
+/// and covariances depend only on the model and the inputs, not on the measurements, so
+/// `evaluate` computes it once and replays it for every run with [`ScheduledCentralized`].
+pub struct CentralizedSchedule<'m> {
+    model: &'m Model,
+    /// Per step: `W(t) = Σ⁻¹ H T` (the transposed gain), and the diagonal blocks of
+    /// `P(t|t)` and `T(t+1)`.
+    gains: Vec<DMatrix<f64>>,
+    p_blocks: Vec<Vec<f64>>,
+    t_blocks: Vec<Vec<f64>>,
+    /// The lifted system of each step's window, shared between steps.
+    systems: Vec<LiftedSystem>,
+    system_of_step: Vec<usize>,
+}
+
+impl<'m> CentralizedSchedule<'m> {
+    /// Bytes a schedule of `steps` steps needs.
+    pub fn bytes(model: &Model, steps: usize) -> usize {
+        let (nn, nq) = (
+            model.subsystems * model.dims.n,
+            model.subsystems * model.dims.q,
+        );
+        steps * 8 * (nn * nq + 2 * model.subsystems * model.dims.n * model.dims.n)
+    }
+
+    /// Runs the covariance pass for the given inputs (`u[t]`, `N·m` values per step).
+    pub fn new(model: &'m Model, u: &[Vec<f64>], max_lifted: usize) -> Result<Self> {
+        let mut filter = CentralizedFilter::new(model, false, max_lifted)?;
+        let y = vec![0.0; model.subsystems * model.dims.q];
+        let mut sched = Self {
+            model,
+            gains: Vec::with_capacity(u.len()),
+            p_blocks: Vec::with_capacity(u.len()),
+            t_blocks: Vec::with_capacity(u.len()),
+            systems: Vec::new(),
+            system_of_step: Vec::with_capacity(u.len()),
+        };
+        for ut in u {
+            filter.step(&y, ut)?;
+            if sched
+                .systems
+                .last()
+                .is_none_or(|s| s.window != filter.sys.window)
+            {
+                sched.systems.push(filter.sys.clone());
+            }
+            sched.system_of_step.push(sched.systems.len() - 1);
+            sched.gains.push(filter.ws.gain_transposed().clone());
+            sched.p_blocks.push(filter.block_filt.clone());
+            sched.t_blocks.push(filter.block_pred.clone());
+        }
+        Ok(sched)
+    }
+}
+
+/// The centralized Nahi filter replayed from a [`CentralizedSchedule`]: only the means are
+/// computed, `O((Nn)²)` per step. Equal to [`CentralizedFilter`] in the unknown-dropout mode.
+pub struct ScheduledCentralized<'s, 'm> {
+    sched: &'s CentralizedSchedule<'m>,
+    t: usize,
+    x_pred: Vec<f64>,
+    x_filt: Vec<f64>,
+    innov: Vec<f64>,
+}
+
+impl<'s, 'm> ScheduledCentralized<'s, 'm> {
+    pub fn new(sched: &'s CentralizedSchedule<'m>) -> Self {
+        let (n, big_n) = (sched.model.dims.n, sched.model.subsystems);
+        let x_pred: Vec<f64> = (0..big_n * n)
+            .map(|r| sched.model.initial_mean[r % n])
+            .collect();
+        Self {
+            sched,
+            t: 1,
+            x_filt: x_pred.clone(),
+            x_pred,
+            innov: vec![0.0; big_n * sched.model.dims.q],
+        }
+    }
+}
+
+impl ChainFilter for ScheduledCentralized<'_, '_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.sched.model;
+        let d = model.dims;
+        let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
+        let t = self.t;
+        let k = t - 1;
+        if k >= self.sched.gains.len() {
+            return Err(Error::Usage(format!(
+                "the centralized schedule ends before t = {t}"
+            )));
+        }
+        let window = model.window(t);
+        for i in 0..big_n {
+            let prm = model.param_set(window.ids[i]);
+            let p = window.p[i];
+            for r in 0..q {
+                let mut acc = y[i * q + r];
+                for c in 0..m {
+                    acc -= prm.R[(r, c)] * u[i * m + c];
+                }
+                for c in 0..n {
+                    acc -= p * prm.J[(r, c)] * self.x_pred[i * n + c];
+                }
+                self.innov[i * q + r] = acc;
+            }
+        }
+        let size = big_n * n;
+        let w = &self.sched.gains[k];
+        let mut xf = nalgebra::DVectorViewMut::from_slice(&mut self.x_filt, size);
+        xf.copy_from_slice(&self.x_pred);
+        let innov = nalgebra::DVectorView::from_slice(&self.innov, self.innov.len());
+        xf.gemv_tr(1.0, w, &innov, 1.0);
+        let sys = &self.sched.systems[self.sched.system_of_step[k]];
+        let mut xp = nalgebra::DVectorViewMut::from_slice(&mut self.x_pred, size);
+        xp.gemv(1.0, &sys.a_eff, &xf, 0.0);
+        let uu = nalgebra::DVectorView::from_slice(u, u.len());
+        xp.gemv(1.0, &sys.u_eff, &uu, 1.0);
+        self.t += 1;
+        Ok(())
+    }
+
+    fn filtered(&self) -> (&[f64], &[f64]) {
+        (&self.x_filt, &self.sched.p_blocks[self.t - 2])
+    }
+
+    fn predicted(&self) -> (&[f64], &[f64]) {
+        (&self.x_pred, &self.sched.t_blocks[self.t - 2])
+    }
+}

@@ -1,0 +1,111 @@
+//! The inputs `u(t, ·)`, one time step at a time: generated from the config's `[input]`, or
+//! read from an inputs CSV (SPEC §6), which must hold exactly the steps `1..T`.
+
+use std::fs::File;
+use std::io::Read;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::io::{StepLayout, StepReader};
+use crate::model::{InputSpec, Model};
+
+/// A source of `u(t, ·)`.
+pub enum InputStream {
+    /// Computed from the config's `[input]` (also the case `m = 0`).
+    Generated { spec: InputSpec, m: usize },
+    /// Read from a CSV file.
+    File(Box<StepReader<Box<dyn Read>>>),
+}
+
+/// The layout of an inputs file with `m` inputs.
+pub fn inputs_layout(m: usize) -> StepLayout {
+    StepLayout {
+        prefix: "u",
+        width: m,
+        extra: &[],
+        allow_empty: false,
+        empty_hint: "",
+    }
+}
+
+/// Opens a CSV of the given layout: a path, or `-` for standard input.
+pub fn open_csv(
+    path: &Path,
+    layout: StepLayout,
+    subsystems: usize,
+) -> Result<StepReader<Box<dyn Read>>> {
+    let source: Box<dyn Read> = if path.as_os_str() == "-" {
+        Box::new(std::io::stdin())
+    } else {
+        Box::new(File::open(path).map_err(|e| Error::io(path, e))?)
+    };
+    let name = if path.as_os_str() == "-" {
+        "<stdin>".to_string()
+    } else {
+        path.display().to_string()
+    };
+    StepReader::new(&name, source, layout, subsystems)
+}
+
+impl InputStream {
+    /// Inputs from `file` when given, else as the model's `[input]` says.
+    pub fn open(model: &Model, file: Option<&Path>) -> Result<Self> {
+        let m = model.dims.m;
+        let path = match (file, &model.input) {
+            (Some(f), _) => Some(f.to_path_buf()),
+            (None, InputSpec::File(f)) => Some(f.clone()),
+            _ => None,
+        };
+        match path {
+            Some(p) if m > 0 => Ok(InputStream::File(Box::new(open_csv(
+                &p,
+                inputs_layout(m),
+                model.subsystems,
+            )?))),
+            _ => Ok(InputStream::Generated {
+                spec: model.input.clone(),
+                m,
+            }),
+        }
+    }
+
+    /// Fills `u` (`N · m` values) with `u(t, ·)`; steps must be asked for in order.
+    pub fn next(&mut self, t: usize, u: &mut [f64]) -> Result<()> {
+        match self {
+            InputStream::Generated { spec, m } => {
+                if *m > 0 {
+                    for (k, ui) in u.chunks_mut(*m).enumerate() {
+                        ui.fill(spec.generated(t, k + 1).unwrap_or(0.0));
+                    }
+                }
+                Ok(())
+            }
+            InputStream::File(r) => match r.read_step(u)? {
+                Some(_) => Ok(()),
+                None => Err(Error::File {
+                    file: r.name().to_string(),
+                    msg: format!(
+                        "ends after t = {}, but inputs are needed up to t = {t} or later",
+                        t - 1
+                    ),
+                }),
+            },
+        }
+    }
+
+    /// Checks that a file held no steps beyond `steps` (SPEC §6: exactly `1..T`).
+    pub fn finish(self, steps: usize) -> Result<()> {
+        if let InputStream::File(mut r) = self {
+            let mut scratch = vec![0.0; r.row_values()];
+            if r.read_step(&mut scratch)?.is_some() {
+                return Err(Error::File {
+                    file: r.name().to_string(),
+                    msg: format!(
+                        "holds steps beyond t = {steps}; expected exactly the steps 1..{steps}"
+                    ),
+                });
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,264 @@
+//! The default step-1 solver, `banded` (SPEC §2): the link equations ordered
+//! `[a(1); b(1); a(2); …]` form a banded system with `kl = s − 1 + n⁺` sub- and
+//! `ku = s − 1 + n⁻` super-diagonals (`s = n⁺ + n⁻`), factorised by [`BandLu`] in `O(N s³)`
+//! once per change of `G` and solved in `O(N s²)` per time step. It needs no block of `G`
+//! to be invertible and is as well conditioned as the problem.
+
+use crate::band_lu::BandLu;
+use crate::error::{Error, Result};
+use crate::model::Model;
+
+/// Largest 1-norm condition estimate of a well-posed interconnection system (SPEC §2).
+pub const MAX_CONDITION: f64 = 1e15;
+
+/// The factorised interconnection system at some time, reused while `G` does not change.
+#[derive(Debug, Clone)]
+pub struct ChainSolver {
+    plus: usize,
+    minus: usize,
+    subsystems: usize,
+    lu: BandLu,
+    /// Every subsystem's `G` (column-major, concatenated) that `lu` was built from.
+    g_built: Vec<f64>,
+    /// The window the factors were last checked against.
+    window: usize,
+    condition: f64,
+}
+
+impl ChainSolver {
+    /// Assembles and factorises the system at time `t`. Fails when it is not well posed.
+    pub fn new(model: &Model, t: usize) -> Result<Self> {
+        let d = model.dims;
+        let s = d.s();
+        let links = model.subsystems - 1;
+        let mut solver = Self {
+            plus: d.plus,
+            minus: d.minus,
+            subsystems: model.subsystems,
+            lu: BandLu::zeros(0, 0, 0),
+            g_built: Vec::new(),
+            window: model.window_index(t),
+            condition: 1.0,
+        };
+        let g_now = solver.collect_g(model, t);
+        solver.assemble(model, t, links * s, g_now)?;
+        Ok(solver)
+    }
+
+    fn collect_g(&self, model: &Model, t: usize) -> Vec<f64> {
+        let w = model.window(t);
+        w.ids
+            .iter()
+            .flat_map(|&id| model.param_set(id).G.as_slice().iter().copied())
+            .collect()
+    }
+
+    /// Makes the factors valid for time `t`: refactorises only when some `G` changed.
+    pub fn prepare(&mut self, model: &Model, t: usize) -> Result<()> {
+        let window = model.window_index(t);
+        if window == self.window {
+            return Ok(());
+        }
+        self.window = window;
+        let g_now = self.collect_g(model, t);
+        if g_now != self.g_built {
+            let order = self.lu.n();
+            self.assemble(model, t, order, g_now)?;
+        }
+        Ok(())
+    }
+
+    fn assemble(&mut self, model: &Model, t: usize, order: usize, g_now: Vec<f64>) -> Result<()> {
+        let (p, m) = (self.plus, self.minus);
+        let s = p + m;
+        if order == 0 {
+            self.g_built = g_now;
+            self.condition = 1.0;
+            return Ok(());
+        }
+        let mut lu = BandLu::zeros(order, s - 1 + p, s - 1 + m);
+        let links = self.subsystems - 1;
+        for i in 1..=links {
+            let base = (i - 1) * s;
+            let g_i = &model.params(t, i).G;
+            let g_next = &model.params(t, i + 1).G;
+            // Rows of a(i): a(i) − G11(i) a(i−1) − G12(i) b(i).
+            for r in 0..p {
+                lu.set(base + r, base + r, 1.0);
+                if i > 1 {
+                    for c in 0..p {
+                        lu.set(base + r, base - s + c, -g_i[(r, c)]);
+                    }
+                }
+                for c in 0..m {
+                    lu.set(base + r, base + p + c, -g_i[(r, p + c)]);
+                }
+            }
+            // Rows of b(i): b(i) − G21(i+1) a(i) − G22(i+1) b(i+1).
+            for r in 0..m {
+                for c in 0..p {
+                    lu.set(base + p + r, base + c, -g_next[(p + r, c)]);
+                }
+                lu.set(base + p + r, base + p + r, 1.0);
+                if i < links {
+                    for c in 0..m {
+                        lu.set(base + p + r, base + s + p + c, -g_next[(p + r, p + c)]);
+                    }
+                }
+            }
+        }
+        lu.factor();
+        if let Some(col) = lu.zero_pivot() {
+            let link = col / s + 1;
+            return Err(Error::IllPosed {
+                file: model.name.clone(),
+                t,
+                msg: format!(
+                    "the equations are singular (zero pivot at the link between subsystems {link} and {}); check model.G",
+                    link + 1
+                ),
+            });
+        }
+        let condition = lu.condition_estimate();
+        if condition > MAX_CONDITION || !condition.is_finite() {
+            return Err(Error::IllPosed {
+                file: model.name.clone(),
+                t,
+                msg: format!(
+                    "condition estimate {condition:.3e} exceeds {MAX_CONDITION:e}; check model.G"
+                ),
+            });
+        }
+        self.lu = lu;
+        self.g_built = g_now;
+        self.condition = condition;
+        Ok(())
+    }
+
+    /// 1-norm condition estimate of the current factors (1 for a chain without links).
+    pub fn condition(&self) -> f64 {
+        self.condition
+    }
+
+    /// Solves (P2)–(P4): given `z` (`N · s` values, `z(i) = [z⁺(i); z⁻(i)]` for each `i`),
+    /// writes `v` (`N · s` values, `v(i) = [v⁺(i); v⁻(i)]`). `rhs` is scratch of any length
+    /// (resized once; no allocation afterwards).
+    pub fn solve(&self, z: &[f64], v: &mut [f64], rhs: &mut Vec<f64>) {
+        let (p, m) = (self.plus, self.minus);
+        let s = p + m;
+        v.iter_mut().for_each(|x| *x = 0.0);
+        let links = self.subsystems - 1;
+        if links == 0 || s == 0 {
+            return;
+        }
+        rhs.resize(links * s, 0.0);
+        for i in 1..=links {
+            let base = (i - 1) * s;
+            rhs[base..base + p].copy_from_slice(&z[base..base + p]);
+            rhs[base + p..base + s].copy_from_slice(&z[i * s + p..i * s + s]);
+        }
+        self.lu.solve(rhs);
+        for i in 1..=links {
+            let base = (i - 1) * s;
+            // a(i) = v⁺(i+1); b(i) = v⁻(i).
+            v[i * s..i * s + p].copy_from_slice(&rhs[base..base + p]);
+            v[base + p..base + s].copy_from_slice(&rhs[base + p..base + s]);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::test_support::random_model;
+    use super::*;
+    use crate::config::ConfigSource;
+    use nalgebra::{DMatrix, DVector};
+
+    /// Dense reference: unknowns are all `w(i)` and `v(i)`; equations (P2), (P3), (P4) as
+    /// written in SPEC §1, without the link elimination used by the solver.
+    fn dense_solve(model: &Model, t: usize, z: &[f64]) -> Vec<f64> {
+        let d = model.dims;
+        let (s, p, n) = (d.s(), d.plus, model.subsystems);
+        let size = 2 * n * s; // [w(1..N); v(1..N)]
+        let mut a = DMatrix::zeros(size, size);
+        let mut b = DVector::zeros(size);
+        let w = |i: usize, k: usize| (i - 1) * s + k;
+        let v = |i: usize, k: usize| n * s + (i - 1) * s + k;
+        let mut row = 0;
+        for i in 1..=n {
+            let g = &model.params(t, i).G;
+            for k in 0..s {
+                // w(i) − G v(i) = z(i)
+                a[(row, w(i, k))] = 1.0;
+                for c in 0..s {
+                    a[(row, v(i, c))] -= g[(k, c)];
+                }
+                b[row] = z[(i - 1) * s + k];
+                row += 1;
+            }
+        }
+        for i in 1..=n {
+            for k in 0..s {
+                a[(row, v(i, k))] = 1.0;
+                if k < p && i > 1 {
+                    a[(row, w(i - 1, k))] = -1.0; // v⁺(i) = w⁺(i−1)
+                } else if k >= p && i < n {
+                    a[(row, w(i + 1, k))] = -1.0; // v⁻(i) = w⁻(i+1)
+                } // else v⁺(1) = 0 or v⁻(N) = 0
+                row += 1;
+            }
+        }
+        let x = a.lu().solve(&b).expect("dense system singular");
+        x.as_slice()[n * s..].to_vec()
+    }
+
+    #[test]
+    fn banded_equals_dense_solve() {
+        let mut seed = 0;
+        for &n_sub in &[1, 2, 3, 10, 200] {
+            for plus in 1..=3 {
+                for minus in 1..=3 {
+                    if n_sub == 200 && plus + minus > 4 {
+                        continue; // the dense reference is O((2Ns)³)
+                    }
+                    seed += 1;
+                    let model = random_model(n_sub, plus, minus, seed, n_sub > 1, 0.0);
+                    let s = plus + minus;
+                    let mut solver = ChainSolver::new(&model, 1).unwrap();
+                    let mut rhs = Vec::new();
+                    for t in 1..=5 {
+                        solver.prepare(&model, t).unwrap();
+                        let z: Vec<f64> = (0..n_sub * s)
+                            .map(|k| ((k * 7 + t) as f64 * 0.37).sin())
+                            .collect();
+                        let mut v = vec![f64::NAN; n_sub * s];
+                        solver.solve(&z, &mut v, &mut rhs);
+                        let exact = dense_solve(&model, t, &z);
+                        let scale = exact.iter().fold(1e-300f64, |a, b| a.max(b.abs()));
+                        for k in 0..v.len() {
+                            assert!(
+                                (v[k] - exact[k]).abs() <= 1e-12 * scale,
+                                "N={n_sub} plus={plus} minus={minus} t={t} k={k}: {} vs {}",
+                                v[k],
+                                exact[k]
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn singular_system_is_reported() {
+        // G12 = G21 = 1 with G11 = G22 = 0 on N = 2: b(1) = a(1) and a(1) = b(1) + z.
+        let text = "subsystems = 2\nsteps = 3\n[interconnection]\nplus = 1\nminus = 1\n\
+                    [model]\nA = [[0.5]]\nB = [[0.1, 0.1]]\nD = [[1.0], [1.0]]\n\
+                    G = [[0.0, 1.0], [1.0, 0.0]]\nJ = [[1.0]]\nM = [[1.0]]\n\
+                    [dropout]\np = 1.0\n[initial]\ncov = [[1.0]]\n";
+        let src = ConfigSource::from_text("s.toml", ".".into(), text.into()).unwrap();
+        let model = Model::from_config(&src).unwrap();
+        let err = ChainSolver::new(&model, 1).unwrap_err().to_string();
+        assert!(err.contains("t = 1") && err.contains("singular"), "{err}");
+    }
+}

@@ -1,0 +1,240 @@
+//! Streaming reader for the per-`(t, i)` CSV files of SPEC §6 (measurements, inputs, truth).
+//! It hands out one time step at a time, so memory does not grow with `T`, and checks the
+//! header, the row order (`t` then `i`), completeness and every number, naming the file and line.
+
+use std::io::Read;
+
+use crate::error::{Error, Result};
+
+/// What a file's columns must be: `t,i,{prefix}1..{prefix}width` and then `extra` columns.
+#[derive(Debug, Clone)]
+pub struct StepLayout {
+    /// Name of the value columns without their index (`y`, `u`, `x`).
+    pub prefix: &'static str,
+    /// Number of indexed value columns.
+    pub width: usize,
+    /// Columns after the indexed ones (`gamma` in the truth file).
+    pub extra: &'static [&'static str],
+    /// Whether an empty cell is allowed (read as NaN: a lost measurement element).
+    pub allow_empty: bool,
+    /// Said after the error for an empty cell that is not allowed.
+    pub empty_hint: &'static str,
+}
+
+impl StepLayout {
+    /// The header the file must have.
+    pub fn header(&self) -> Vec<String> {
+        let mut h = vec!["t".to_string(), "i".to_string()];
+        h.extend((1..=self.width).map(|k| format!("{}{k}", self.prefix)));
+        h.extend(self.extra.iter().map(|s| s.to_string()));
+        h
+    }
+
+    fn columns(&self) -> usize {
+        2 + self.width + self.extra.len()
+    }
+}
+
+/// Reads a `t,i,…` CSV one time step (all `N` subsystems) at a time.
+pub struct StepReader<R: Read> {
+    name: String,
+    layout: StepLayout,
+    subsystems: usize,
+    reader: csv::Reader<R>,
+    record: csv::ByteRecord,
+    next_t: usize,
+    last_line: u64,
+}
+
+impl<R: Read> StepReader<R> {
+    /// Opens a reader and checks the header. `name` is used in messages.
+    pub fn new(name: &str, source: R, layout: StepLayout, subsystems: usize) -> Result<Self> {
+        let reader = csv::ReaderBuilder::new()
+            .has_headers(false)
+            .flexible(true)
+            .buffer_capacity(1 << 16)
+            .from_reader(source);
+        let mut this = Self {
+            name: name.to_string(),
+            layout,
+            subsystems,
+            reader,
+            record: csv::ByteRecord::new(),
+            next_t: 1,
+            last_line: 1,
+        };
+        let expected = this.layout.header().join(",");
+        let got = this
+            .reader
+            .read_byte_record(&mut this.record)
+            .map_err(|e| this.csv_error(1, e))?;
+        if !got {
+            return Err(this.err(1, format!("empty file; expected the header `{expected}`")));
+        }
+        let found: Vec<String> = this
+            .record
+            .iter()
+            .map(|f| String::from_utf8_lossy(f).trim().to_string())
+            .collect();
+        if found.join(",") != expected {
+            return Err(this.err(
+                1,
+                format!(
+                    "expected the header `{expected}`, found `{}`",
+                    found.join(",").escape_debug()
+                ),
+            ));
+        }
+        Ok(this)
+    }
+
+    fn err(&self, line: u64, msg: String) -> Error {
+        Error::Csv {
+            file: self.name.clone(),
+            line,
+            msg,
+        }
+    }
+
+    fn csv_error(&self, line: u64, e: csv::Error) -> Error {
+        match e.kind() {
+            csv::ErrorKind::Io(io) => Error::Io {
+                path: self.name.clone().into(),
+                err: std::io::Error::new(io.kind(), io.to_string()),
+            },
+            _ => {
+                let line = e.position().map_or(line, |p| p.line());
+                self.err(line, e.to_string())
+            }
+        }
+    }
+
+    /// The file name used in messages.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The number of values [`StepReader::read_step`] fills per time step.
+    pub fn row_values(&self) -> usize {
+        self.subsystems * (self.layout.width + self.layout.extra.len())
+    }
+
+    /// The next time step this reader expects (1-based).
+    pub fn next_t(&self) -> usize {
+        self.next_t
+    }
+
+    /// Reads the rows of the next time step into `out` (`N · (width + extra)` values, row by
+    /// row; an empty cell reads as NaN). Returns the step read, or `None` at the end of file.
+    pub fn read_step(&mut self, out: &mut [f64]) -> Result<Option<usize>> {
+        let t = self.next_t;
+        let per_row = self.layout.width + self.layout.extra.len();
+        debug_assert_eq!(out.len(), self.subsystems * per_row);
+        for i in 1..=self.subsystems {
+            let more = self
+                .reader
+                .read_byte_record(&mut self.record)
+                .map_err(|e| self.csv_error(self.last_line + 1, e))?;
+            if !more {
+                if i == 1 {
+                    return Ok(None);
+                }
+                return Err(self.err(
+                    self.last_line + 1,
+                    format!(
+                        "file ends inside time step t = {t}: expected rows for i = {i}..{}",
+                        self.subsystems
+                    ),
+                ));
+            }
+            let line = self
+                .record
+                .position()
+                .map_or(self.last_line + 1, |p| p.line());
+            self.last_line = line;
+            if self.record.len() != self.layout.columns() {
+                return Err(self.err(
+                    line,
+                    format!(
+                        "expected {} columns ({}), found {}",
+                        self.layout.columns(),
+                        self.layout.header().join(","),
+                        self.record.len()
+                    ),
+                ));
+            }
+            let (rt, ri) = (self.index(line, 0, "t")?, self.index(line, 1, "i")?);
+            if (rt, ri) != (t, i) {
+                return Err(self.err(
+                    line,
+                    format!(
+                        "expected the row t = {t}, i = {i}, found t = {rt}, i = {ri} \
+                         (rows are ordered by t then i, with i = 1..{} for every t)",
+                        self.subsystems
+                    ),
+                ));
+            }
+            for k in 0..per_row {
+                out[(i - 1) * per_row + k] = self.number(line, 2 + k)?;
+            }
+        }
+        self.next_t += 1;
+        Ok(Some(t))
+    }
+
+    fn column_name(&self, col: usize) -> String {
+        self.layout.header()[col].clone()
+    }
+
+    fn index(&self, line: u64, col: usize, what: &str) -> Result<usize> {
+        let field = self.record.get(col).unwrap_or_default();
+        let text = String::from_utf8_lossy(field);
+        text.trim().parse::<usize>().map_err(|_| {
+            self.err(
+                line,
+                format!(
+                    "column `{what}`: expected a positive integer, found `{}`",
+                    text.escape_debug()
+                ),
+            )
+        })
+    }
+
+    fn number(&self, line: u64, col: usize) -> Result<f64> {
+        let field = self.record.get(col).unwrap_or_default();
+        let Ok(text) = std::str::from_utf8(field).map(str::trim) else {
+            return Err(self.err(
+                line,
+                format!(
+                    "column `{}`: expected a finite number, found `{}` (not UTF-8)",
+                    self.column_name(col),
+                    String::from_utf8_lossy(field).escape_debug()
+                ),
+            ));
+        };
+        if text.is_empty() {
+            if self.layout.allow_empty {
+                return Ok(f64::NAN);
+            }
+            return Err(self.err(
+                line,
+                format!(
+                    "column `{}`: empty cell{}",
+                    self.column_name(col),
+                    self.layout.empty_hint
+                ),
+            ));
+        }
+        match text.parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            _ => Err(self.err(
+                line,
+                format!(
+                    "column `{}`: expected a finite number, found `{}`",
+                    self.column_name(col),
+                    String::from_utf8_lossy(field).escape_debug()
+                ),
+            )),
+        }
+    }
+}

@@ -1,0 +1,156 @@
+//! Output destinations: standard output, or a file written atomically (a temporary file in the
+//! target folder, renamed over the target only when everything was written), so that an error
+//! or an interrupted run never leaves a half-written file and keeps the previous one intact.
+
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+
+const BUFFER: usize = 1 << 20;
+
+/// Where a command writes one output.
+pub enum Output {
+    Stdout(HeldStdout),
+    File {
+        file: BufWriter<tempfile::NamedTempFile>,
+        dest: PathBuf,
+    },
+}
+
+impl Output {
+    /// `-` is standard output; anything else a file created atomically in an existing folder.
+    pub fn create(dest: &Path) -> Result<Self> {
+        if dest.as_os_str() == "-" {
+            return Ok(Output::Stdout(HeldStdout(Some(BufWriter::with_capacity(
+                BUFFER,
+                std::io::stdout(),
+            )))));
+        }
+        if dest.is_dir() {
+            return Err(Error::io(
+                dest,
+                std::io::Error::new(
+                    std::io::ErrorKind::IsADirectory,
+                    "is a folder, expected a file path",
+                ),
+            ));
+        }
+        let dir = match dest.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if !dir.is_dir() {
+            return Err(Error::Usage(format!(
+                "{}: the folder {} does not exist",
+                dest.display(),
+                dir.display()
+            )));
+        }
+        let tmp = tempfile::Builder::new()
+            .prefix(".sisfilt-")
+            .suffix(".tmp")
+            .tempfile_in(dir)
+            .map_err(|e| Error::io(dest, e))?;
+        Ok(Output::File {
+            file: BufWriter::with_capacity(BUFFER, tmp),
+            dest: dest.to_path_buf(),
+        })
+    }
+
+    /// The path written to, or `-`.
+    pub fn name(&self) -> String {
+        match self {
+            Output::Stdout(_) => "-".into(),
+            Output::File { dest, .. } => dest.display().to_string(),
+        }
+    }
+
+    /// Flushes and, for a file, renames the temporary file over the destination.
+    pub fn commit(self) -> Result<()> {
+        match self {
+            Output::Stdout(mut w) => w.finish().map_err(|e| Error::io("<stdout>", e)),
+            Output::File { file, dest } => {
+                let tmp = file
+                    .into_inner()
+                    .map_err(|e| Error::io(&dest, e.into_error()))?;
+                tmp.as_file().sync_all().ok();
+                #[cfg(unix)]
+                {
+                    use std::os::unix::fs::PermissionsExt;
+                    // Temporary files are private (0600); results are ordinary files.
+                    let _ = std::fs::set_permissions(
+                        tmp.path(),
+                        std::fs::Permissions::from_mode(0o644),
+                    );
+                }
+                tmp.persist(&dest).map_err(|e| Error::io(&dest, e.error))?;
+                Ok(())
+            }
+        }
+    }
+}
+
+impl Write for Output {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            Output::Stdout(w) => w.write(buf),
+            Output::File { file, .. } => file.write(buf),
+        }
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        match self {
+            Output::Stdout(w) => w.write_all(buf),
+            Output::File { file, .. } => file.write_all(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            Output::Stdout(w) => w.flush(),
+            Output::File { file, .. } => file.flush(),
+        }
+    }
+}
+
+/// Buffered standard output that is only flushed by [`HeldStdout::finish`]: dropped on an
+/// error path, it discards what it still holds, so a failed run writes at most what had
+/// already overflowed the 1 MiB buffer (nothing, for most outputs).
+pub struct HeldStdout(Option<BufWriter<std::io::Stdout>>);
+
+impl HeldStdout {
+    fn finish(&mut self) -> std::io::Result<()> {
+        match self.0.take() {
+            Some(mut w) => w.flush(),
+            None => Ok(()),
+        }
+    }
+
+    fn inner(&mut self) -> &mut BufWriter<std::io::Stdout> {
+        self.0.as_mut().expect("standard output used after finish")
+    }
+}
+
+impl Drop for HeldStdout {
+    fn drop(&mut self) {
+        if let Some(w) = self.0.take() {
+            let _ = w.into_parts();
+        }
+    }
+}
+
+impl Write for HeldStdout {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner().write(buf)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.inner().write_all(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        // Flushing is for `finish`: intermediate flushes would pass partial output on.
+        Ok(())
+    }
+}

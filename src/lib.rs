@@ -1,0 +1,44 @@
+//! `sisfilt`: distributed recursive filtering for spatially interconnected systems with
+//! randomly occurring missing measurements (the paper by Bai Li, corrected by `SPEC.md`).
+//!
+//! # Notation (SPEC §1)
+//! A chain of `N` subsystems `i = 1..N` over time `t = 1..T`; subsystem `i` has state
+//! `x ∈ Rⁿ`, input `u ∈ Rᵐ`, measurement `y ∈ R^q` and interconnection signals
+//! `v = [v⁺; v⁻]` (in), `w = [w⁺; w⁻]` (out):
+//!
+//! ```text
+//! x(t+1,i) = A x + B v + C u + ω,   ω ~ N(0, Q)                       (P1)
+//! w(t,i)   = D x + G v + H u                                          (P2)
+//! v⁺(t,i)  = w⁺(t,i−1), v⁻(t,i) = w⁻(t,i+1), v⁺(t,1) = 0, v⁻(t,N) = 0   (P3, P4)
+//! y(t,i)   = γ J x + R u + d,   d ~ N(0, M),   γ ~ Bernoulli(p)        (P5)
+//! ```
+//!
+//! `S` denotes the raw second moment `E[x xᵀ]` of SPEC §3, never the chain length.
+//!
+//! # Modules, in data-flow order
+//! - [`config`]: the TOML as written; [`model`]: the validated model and parameters at `(t, i)`.
+//! - [`inputs`]: `u(t, ·)`; [`simulate`]: the true system with dropouts.
+//! - [`interconnect`]: step 1, the chain solve (on [`band_lu`]); [`lifted`]: the lifted system.
+//! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
+//! - [`cli`], [`commands`]: the command line.
+
+// Index loops mirror the formulas of SPEC.md; iterator chains would hide them.
+#![allow(clippy::needless_range_loop)]
+
+pub mod accuracy;
+pub mod band_lu;
+pub mod cli;
+pub mod commands;
+pub mod config;
+pub mod error;
+pub mod evaluate;
+pub mod filter;
+pub mod inputs;
+pub mod interconnect;
+pub mod io;
+pub mod lifted;
+pub mod linalg;
+pub mod model;
+pub mod simulate;
+
+pub use error::{Error, Result};

@@ -1,0 +1,62 @@
+//! The `sisfilt` binary: parses the command line, runs the command, reports errors (SPEC §7).
+
+use std::process::ExitCode;
+
+use clap::Parser;
+use clap::error::ErrorKind;
+
+fn main() -> ExitCode {
+    let cli = match sisfilt::cli::Cli::try_parse() {
+        Ok(cli) => cli,
+        // --help, --version, and the help shown when no command is given.
+        Err(e)
+            if !e.use_stderr()
+                || e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand =>
+        {
+            e.exit()
+        }
+        Err(e) => {
+            eprintln!("error: {}", usage_error_line(&e));
+            return ExitCode::from(u8::try_from(e.exit_code()).unwrap_or(2));
+        }
+    };
+    match sisfilt::commands::run(cli.command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            let broken_pipe = err.chain().any(|c| {
+                c.downcast_ref::<std::io::Error>()
+                    .is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
+                    || matches!(c.downcast_ref::<sisfilt::Error>(),
+                        Some(sisfilt::Error::Io { err, .. }) if err.kind() == std::io::ErrorKind::BrokenPipe)
+            });
+            if broken_pipe {
+                return ExitCode::SUCCESS;
+            }
+            eprintln!("error: {err:#}");
+            let code = err
+                .chain()
+                .find_map(|c| c.downcast_ref::<sisfilt::Error>())
+                .map_or(1, sisfilt::Error::exit_code);
+            ExitCode::from(code)
+        }
+    }
+}
+
+/// A command-line error as one line (SPEC §7): clap's message and its tips, without the usage
+/// block that clap prints below them.
+fn usage_error_line(e: &clap::Error) -> String {
+    let text = e.to_string();
+    let mut line = String::new();
+    for part in text
+        .lines()
+        .map(str::trim)
+        .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("For more information"))
+        .filter(|l| !l.is_empty())
+    {
+        if !line.is_empty() {
+            line.push_str(if line.ends_with(':') { " " } else { "; " });
+        }
+        line.push_str(part.strip_prefix("error: ").unwrap_or(part));
+    }
+    line + " (see --help)"
+}

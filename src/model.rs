@@ -1,0 +1,700 @@
+//! The validated model of SPEC §1: dimensions, parameter sets and where they apply.
+//!
+//! [`Model::from_config`] checks every shape, value and range of a [`RawConfig`] once; the rest
+//! of the crate relies on those checks and never re-validates. Parameters that vary in time or
+//! space (`[[override]]`) are stored as a few distinct [`Params`] sets plus, per time window, the
+//! set index of each subsystem: nothing is copied per `(t, i)`.
+#![allow(non_snake_case)]
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use nalgebra::{DMatrix, DVector, SymmetricEigen};
+
+use crate::config::{ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability};
+use crate::error::{Error, Result};
+
+/// The sizes of one subsystem (SPEC §1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct Dims {
+    /// State dimension `n`.
+    pub n: usize,
+    /// Input dimension `m` (0 when there is no input).
+    pub m: usize,
+    /// Measurement dimension `q`.
+    pub q: usize,
+    /// `n⁺ = dim v⁺ = dim w⁺`, the signal passed from `i` to `i+1`.
+    pub plus: usize,
+    /// `n⁻ = dim v⁻ = dim w⁻`, the signal passed from `i+1` to `i`.
+    pub minus: usize,
+}
+
+impl Dims {
+    /// `n⁺ + n⁻`, the length of `v` and `w`.
+    pub fn s(&self) -> usize {
+        self.plus + self.minus
+    }
+}
+
+/// One set of subsystem parameters, (P1), (P2), (P5).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    pub A: DMatrix<f64>,
+    pub B: DMatrix<f64>,
+    pub C: DMatrix<f64>,
+    pub D: DMatrix<f64>,
+    pub G: DMatrix<f64>,
+    pub H: DMatrix<f64>,
+    pub J: DMatrix<f64>,
+    pub R: DMatrix<f64>,
+    /// Measurement noise covariance, symmetric positive definite.
+    pub M: DMatrix<f64>,
+    /// Process noise covariance, symmetric positive semidefinite.
+    pub Q: DMatrix<f64>,
+}
+
+/// The names of the matrices of [`Params`], in config order.
+pub const MATRIX_KEYS: [&str; 10] = ["A", "B", "C", "D", "G", "H", "J", "R", "M", "Q"];
+
+impl Params {
+    /// The matrix named by a config key (one of [`MATRIX_KEYS`]).
+    pub fn get(&self, key: &str) -> &DMatrix<f64> {
+        match key {
+            "A" => &self.A,
+            "B" => &self.B,
+            "C" => &self.C,
+            "D" => &self.D,
+            "G" => &self.G,
+            "H" => &self.H,
+            "J" => &self.J,
+            "R" => &self.R,
+            "M" => &self.M,
+            "Q" => &self.Q,
+            _ => unreachable!("not a matrix key: {key}"),
+        }
+    }
+
+    fn get_mut(&mut self, key: &str) -> &mut DMatrix<f64> {
+        match key {
+            "A" => &mut self.A,
+            "B" => &mut self.B,
+            "C" => &mut self.C,
+            "D" => &mut self.D,
+            "G" => &mut self.G,
+            "H" => &mut self.H,
+            "J" => &mut self.J,
+            "R" => &mut self.R,
+            "M" => &mut self.M,
+            "Q" => &mut self.Q,
+            _ => unreachable!("not a matrix key: {key}"),
+        }
+    }
+}
+
+/// How `u(t,i)` is produced (SPEC §6 `[input]`). Every element of `u` gets the same value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum InputSpec {
+    Zero,
+    /// `u_k = amplitude`.
+    Constant {
+        amplitude: f64,
+    },
+    /// `u_k = amplitude · sin(2π t / period + phase · i)`.
+    Sine {
+        amplitude: f64,
+        period: f64,
+        phase: f64,
+    },
+    /// An inputs CSV (SPEC §6), path already resolved against the config's folder.
+    File(PathBuf),
+}
+
+impl InputSpec {
+    /// The value of every element of a generated `u(t,i)`; `None` for [`InputSpec::File`].
+    pub fn generated(&self, t: usize, i: usize) -> Option<f64> {
+        match *self {
+            InputSpec::Zero => Some(0.0),
+            InputSpec::Constant { amplitude } => Some(amplitude),
+            InputSpec::Sine {
+                amplitude,
+                period,
+                phase,
+            } => Some(
+                amplitude
+                    * (2.0 * std::f64::consts::PI * t as f64 / period + phase * i as f64).sin(),
+            ),
+            InputSpec::File(_) => None,
+        }
+    }
+}
+
+/// The parameters of all subsystems on a run of time steps `first..next window's first`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Window {
+    /// First time step of the window (1-based).
+    pub first: usize,
+    /// For each subsystem (0-based), the index of its parameter set.
+    pub ids: Vec<u32>,
+    /// For each subsystem (0-based), the arrival probability `p(t,i)`.
+    pub p: Vec<f64>,
+}
+
+/// The validated model. Built once by [`Model::from_config`]; read-only afterwards.
+#[derive(Debug, Clone)]
+pub struct Model {
+    /// The config's name, for messages.
+    pub name: String,
+    pub dims: Dims,
+    /// Chain length `N`.
+    pub subsystems: usize,
+    /// Horizon `T` of `simulate` (the config's `steps`).
+    pub steps: usize,
+    /// Default seed.
+    pub seed: u64,
+    /// `m0`.
+    pub initial_mean: DVector<f64>,
+    /// `P0`.
+    pub initial_cov: DMatrix<f64>,
+    pub input: InputSpec,
+    params: Vec<Params>,
+    windows: Vec<Window>,
+}
+
+/// Largest chain length a config may ask for: every per-subsystem array is allocated up front,
+/// so a mistyped `subsystems` must be refused rather than abort the process on allocation.
+pub const MAX_SUBSYSTEMS: usize = 10_000_000;
+
+/// Relative tolerance of the symmetry and semidefiniteness checks on config matrices.
+const SYMMETRY_TOL: f64 = 1e-10;
+
+struct Checker<'a> {
+    file: &'a str,
+}
+
+impl Checker<'_> {
+    fn err(&self, key: &str, msg: impl Into<String>) -> Error {
+        Error::Config {
+            file: self.file.to_string(),
+            key: key.to_string(),
+            msg: msg.into(),
+        }
+    }
+
+    fn finite(&self, key: &str, x: f64) -> Result<f64> {
+        if x.is_finite() {
+            Ok(x)
+        } else {
+            Err(self.err(key, format!("expected a finite number, found {x}")))
+        }
+    }
+
+    fn count(&self, key: &str, x: i64, min: i64) -> Result<usize> {
+        if x < min {
+            Err(self.err(key, format!("expected an integer ≥ {min}, found {x}")))
+        } else {
+            Ok(x as usize)
+        }
+    }
+
+    /// Shape of a raw matrix; rejects ragged rows and non-finite entries.
+    fn shape(&self, key: &str, raw: &RawMatrix) -> Result<(usize, usize)> {
+        let cols = raw.first().map_or(0, Vec::len);
+        for (r, row) in raw.iter().enumerate() {
+            if row.len() != cols {
+                return Err(self.err(
+                    key,
+                    format!(
+                        "ragged matrix: row 1 has {cols} entries but row {} has {}",
+                        r + 1,
+                        row.len()
+                    ),
+                ));
+            }
+            for &x in row {
+                self.finite(key, x)?;
+            }
+        }
+        Ok((raw.len(), cols))
+    }
+
+    /// Converts a raw matrix, checking it is `rows × cols`; `what` names the expected shape.
+    fn matrix(
+        &self,
+        key: &str,
+        raw: &RawMatrix,
+        rows: usize,
+        cols: usize,
+        what: &str,
+    ) -> Result<DMatrix<f64>> {
+        let (r, c) = self.shape(key, raw)?;
+        // An empty list stands for any matrix with a zero dimension.
+        let ok = (r, c) == (rows, cols) || (r == 0 && (rows == 0 || cols == 0));
+        if !ok {
+            return Err(self.err(
+                key,
+                format!("expected {rows} × {cols} ({what}), found {r} × {c}"),
+            ));
+        }
+        Ok(DMatrix::from_fn(rows, cols, |i, j| raw[i][j]))
+    }
+
+    fn symmetric(&self, key: &str, a: &DMatrix<f64>) -> Result<()> {
+        let scale = a.amax().max(f64::MIN_POSITIVE);
+        for i in 0..a.nrows() {
+            for j in 0..i {
+                if (a[(i, j)] - a[(j, i)]).abs() > SYMMETRY_TOL * scale {
+                    return Err(self.err(
+                        key,
+                        format!(
+                            "expected a symmetric matrix, but entry ({}, {}) = {} differs from ({}, {}) = {}",
+                            i + 1,
+                            j + 1,
+                            a[(i, j)],
+                            j + 1,
+                            i + 1,
+                            a[(j, i)]
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn positive_semidefinite(&self, key: &str, a: &DMatrix<f64>) -> Result<()> {
+        self.symmetric(key, a)?;
+        if a.is_empty() {
+            return Ok(());
+        }
+        let eig = SymmetricEigen::new(a.clone());
+        let min = eig.eigenvalues.min();
+        let scale = eig.eigenvalues.amax();
+        if min < -SYMMETRY_TOL * scale {
+            return Err(self.err(
+                key,
+                format!(
+                    "expected a positive semidefinite matrix, but it has the eigenvalue {min:e}"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    fn positive_definite(&self, key: &str, a: &DMatrix<f64>) -> Result<()> {
+        self.symmetric(key, a)?;
+        if a.nrows() > 0 && a.clone().cholesky().is_none() {
+            let min = SymmetricEigen::new(a.clone()).eigenvalues.min();
+            return Err(self.err(
+                key,
+                format!("expected a positive definite matrix, but it has the eigenvalue {min:e}"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn probability(&self, key: &str, p: f64) -> Result<f64> {
+        self.finite(key, p)?;
+        if !(0.0..=1.0).contains(&p) {
+            return Err(self.err(key, format!("expected a probability in [0, 1], found {p}")));
+        }
+        Ok(p)
+    }
+
+    /// An inclusive range `[first, last]` with `1 ≤ first ≤ last` (and `last ≤ max` if given).
+    fn range(&self, key: &str, r: [i64; 2], max: Option<usize>) -> Result<(usize, usize)> {
+        let [first, last] = r;
+        let bounds = match max {
+            Some(max) => format!("within 1..{max}"),
+            None => "starting at 1 or later".to_string(),
+        };
+        if first < 1 || max.is_some_and(|m| last as u64 > m as u64) {
+            return Err(self.err(
+                key,
+                format!("expected a range [first, last] {bounds}, found [{first}, {last}]"),
+            ));
+        }
+        if last < first {
+            return Err(self.err(
+                key,
+                format!("expected first ≤ last, found the reversed range [{first}, {last}]"),
+            ));
+        }
+        Ok((first as usize, last as usize))
+    }
+}
+
+/// The expected shape of each matrix, as (rows, cols, description).
+fn expected_shape(d: &Dims, key: &str) -> (usize, usize, &'static str) {
+    let s = d.s();
+    match key {
+        "A" => (d.n, d.n, "n × n"),
+        "B" => (d.n, s, "n × (plus+minus)"),
+        "C" => (d.n, d.m, "n × m"),
+        "D" => (s, d.n, "(plus+minus) × n"),
+        "G" => (s, s, "(plus+minus) × (plus+minus)"),
+        "H" => (s, d.m, "(plus+minus) × m"),
+        "J" => (d.q, d.n, "q × n"),
+        "R" => (d.q, d.m, "q × m"),
+        "M" => (d.q, d.q, "q × q"),
+        "Q" => (d.n, d.n, "n × n"),
+        _ => unreachable!(),
+    }
+}
+
+fn override_matrix<'a>(o: &'a RawOverride, key: &str) -> Option<&'a RawMatrix> {
+    match key {
+        "A" => o.A.as_ref(),
+        "B" => o.B.as_ref(),
+        "C" => o.C.as_ref(),
+        "D" => o.D.as_ref(),
+        "G" => o.G.as_ref(),
+        "H" => o.H.as_ref(),
+        "J" => o.J.as_ref(),
+        "R" => o.R.as_ref(),
+        "M" => o.M.as_ref(),
+        "Q" => o.Q.as_ref(),
+        _ => unreachable!(),
+    }
+}
+
+/// A validated override: where it applies and what it sets.
+struct Override {
+    subsystems: Option<(usize, usize)>,
+    steps: Option<(usize, usize)>,
+    matrices: Vec<(&'static str, DMatrix<f64>)>,
+    p: Option<f64>,
+}
+
+impl Override {
+    fn applies(&self, t: usize, i: usize) -> bool {
+        self.steps.is_none_or(|(a, b)| a <= t && t <= b)
+            && self.subsystems.is_none_or(|(a, b)| a <= i && i <= b)
+    }
+}
+
+impl Model {
+    /// Checks a parsed config and builds the model (SPEC §1, §6).
+    pub fn from_config(src: &ConfigSource) -> Result<Self> {
+        let c = Checker { file: &src.name };
+        let raw: &RawConfig = &src.raw;
+        let subsystems = c.count("subsystems", raw.subsystems, 1)?;
+        if subsystems > MAX_SUBSYSTEMS {
+            return Err(c.err(
+                "subsystems",
+                format!("expected at most {MAX_SUBSYSTEMS} subsystems, found {subsystems}"),
+            ));
+        }
+        let steps = c.count("steps", raw.steps, 1)?;
+        let plus = c.count("interconnection.plus", raw.interconnection.plus, 0)?;
+        let minus = c.count("interconnection.minus", raw.interconnection.minus, 0)?;
+
+        let rm = &raw.model;
+        let (n, n_cols) = c.shape("model.A", &rm.A)?;
+        if n == 0 || n != n_cols {
+            return Err(c.err(
+                "model.A",
+                format!("expected a square n × n matrix with n ≥ 1, found {n} × {n_cols}"),
+            ));
+        }
+        let (q, _) = c.shape("model.J", &rm.J)?;
+        if q == 0 {
+            return Err(c.err("model.J", "expected at least one row (q ≥ 1)"));
+        }
+        let mut m = None;
+        for (key, raw_m) in [("C", &rm.C), ("H", &rm.H), ("R", &rm.R)] {
+            if let Some(raw_m) = raw_m {
+                let (_, cols) = c.shape(&format!("model.{key}"), raw_m)?;
+                match m {
+                    None => m = Some((key, cols)),
+                    Some((first, m0)) if m0 != cols => {
+                        return Err(c.err(
+                            &format!("model.{key}"),
+                            format!("expected {m0} columns (m, from model.{first}), found {cols}"),
+                        ));
+                    }
+                    _ => {}
+                }
+            }
+        }
+        let dims = Dims {
+            n,
+            m: m.map_or(0, |(_, m)| m),
+            q,
+            plus,
+            minus,
+        };
+
+        let matrix = |key: &'static str, raw_m: Option<&RawMatrix>, prefix: &str| {
+            let (r, cols, what) = expected_shape(&dims, key);
+            match raw_m {
+                Some(raw_m) => c.matrix(&format!("{prefix}{key}"), raw_m, r, cols, what),
+                None => Ok(DMatrix::zeros(r, cols)),
+            }
+        };
+        let base = Params {
+            A: matrix("A", Some(&rm.A), "model.")?,
+            B: matrix("B", Some(&rm.B), "model.")?,
+            C: matrix("C", rm.C.as_ref(), "model.")?,
+            D: matrix("D", Some(&rm.D), "model.")?,
+            G: matrix("G", Some(&rm.G), "model.")?,
+            H: matrix("H", rm.H.as_ref(), "model.")?,
+            J: matrix("J", Some(&rm.J), "model.")?,
+            R: matrix("R", rm.R.as_ref(), "model.")?,
+            M: matrix("M", Some(&rm.M), "model.")?,
+            Q: matrix("Q", rm.Q.as_ref(), "model.")?,
+        };
+        c.positive_definite("model.M", &base.M)?;
+        c.positive_semidefinite("model.Q", &base.Q)?;
+
+        let base_p = match &raw.dropout.p {
+            RawProbability::All(p) => vec![c.probability("dropout.p", *p)?; subsystems],
+            RawProbability::PerSubsystem(ps) => {
+                if ps.len() != subsystems {
+                    return Err(c.err(
+                        "dropout.p",
+                        format!(
+                            "expected one value or a list of {subsystems} values (one per subsystem), found {}",
+                            ps.len()
+                        ),
+                    ));
+                }
+                ps.iter()
+                    .map(|&p| c.probability("dropout.p", p))
+                    .collect::<Result<_>>()?
+            }
+        };
+
+        let initial_mean = match &raw.initial.mean {
+            None => DVector::zeros(n),
+            Some(v) => {
+                if v.len() != n {
+                    return Err(c.err(
+                        "initial.mean",
+                        format!("expected {n} values (n), found {}", v.len()),
+                    ));
+                }
+                for &x in v {
+                    c.finite("initial.mean", x)?;
+                }
+                DVector::from_column_slice(v)
+            }
+        };
+        let initial_cov = c.matrix("initial.cov", &raw.initial.cov, n, n, "n × n")?;
+        c.positive_semidefinite("initial.cov", &initial_cov)?;
+
+        let input = Self::input_spec(&c, src, dims.m)?;
+
+        let mut overrides = Vec::with_capacity(raw.overrides.len());
+        for (k, o) in raw.overrides.iter().enumerate() {
+            let prefix = format!("override[{}].", k + 1);
+            let mut matrices = Vec::new();
+            for key in MATRIX_KEYS {
+                if let Some(raw_m) = override_matrix(o, key) {
+                    let mat = matrix(key, Some(raw_m), &prefix)?;
+                    match key {
+                        "M" => c.positive_definite(&format!("{prefix}M"), &mat)?,
+                        "Q" => c.positive_semidefinite(&format!("{prefix}Q"), &mat)?,
+                        _ => {}
+                    }
+                    matrices.push((key, mat));
+                }
+            }
+            overrides.push(Override {
+                subsystems: o
+                    .subsystems
+                    .map(|r| c.range(&format!("{prefix}subsystems"), r, Some(subsystems)))
+                    .transpose()?,
+                steps: o
+                    .steps
+                    .map(|r| c.range(&format!("{prefix}steps"), r, None))
+                    .transpose()?,
+                matrices,
+                p: o.p
+                    .map(|p| c.probability(&format!("{prefix}p"), p))
+                    .transpose()?,
+            });
+        }
+        let (params, windows) = Self::build_windows(base, &base_p, &overrides, subsystems);
+
+        Ok(Model {
+            name: src.name.clone(),
+            dims,
+            subsystems,
+            steps,
+            seed: raw.seed,
+            initial_mean,
+            initial_cov,
+            input,
+            params,
+            windows,
+        })
+    }
+
+    fn input_spec(c: &Checker, src: &ConfigSource, m: usize) -> Result<InputSpec> {
+        let Some(inp) = &src.raw.input else {
+            return Ok(InputSpec::Zero);
+        };
+        let amplitude = c.finite("input.amplitude", inp.amplitude.unwrap_or(1.0))?;
+        Ok(match inp.kind {
+            InputKind::Zero => InputSpec::Zero,
+            InputKind::Constant => InputSpec::Constant { amplitude },
+            InputKind::Sine => {
+                let period = inp
+                    .period
+                    .ok_or_else(|| c.err("input.period", "required for kind = \"sine\""))?;
+                if !(period.is_finite() && period > 0.0) {
+                    return Err(c.err(
+                        "input.period",
+                        format!("expected a finite number > 0, found {period}"),
+                    ));
+                }
+                InputSpec::Sine {
+                    amplitude,
+                    period,
+                    phase: c.finite("input.phase", inp.phase.unwrap_or(0.0))?,
+                }
+            }
+            InputKind::File => {
+                let path = inp
+                    .path
+                    .as_ref()
+                    .ok_or_else(|| c.err("input.path", "required for kind = \"file\""))?;
+                if m == 0 {
+                    // Nothing reads u when m = 0 (no C, H or R given).
+                    InputSpec::Zero
+                } else {
+                    InputSpec::File(src.dir.join(path))
+                }
+            }
+        })
+    }
+
+    /// Splits time into windows on which every subsystem's parameters are constant, and
+    /// builds one parameter set per distinct combination of matrix overrides.
+    fn build_windows(
+        base: Params,
+        base_p: &[f64],
+        overrides: &[Override],
+        subsystems: usize,
+    ) -> (Vec<Params>, Vec<Window>) {
+        let mut starts = vec![1usize];
+        for o in overrides {
+            if let Some((a, b)) = o.steps {
+                starts.push(a);
+                starts.push(b.saturating_add(1));
+            }
+        }
+        starts.sort_unstable();
+        starts.dedup();
+
+        let mut params = vec![base];
+        let mut set_of: HashMap<Vec<usize>, u32> = HashMap::from([(Vec::new(), 0)]);
+        let mut windows: Vec<Window> = Vec::with_capacity(starts.len());
+        for &first in &starts {
+            let mut ids = Vec::with_capacity(subsystems);
+            let mut p = Vec::with_capacity(subsystems);
+            for i in 1..=subsystems {
+                let applied: Vec<usize> = (0..overrides.len())
+                    .filter(|&k| overrides[k].applies(first, i))
+                    .collect();
+                p.push(
+                    applied
+                        .iter()
+                        .rev()
+                        .find_map(|&k| overrides[k].p)
+                        .unwrap_or(base_p[i - 1]),
+                );
+                let with_matrices: Vec<usize> = applied
+                    .into_iter()
+                    .filter(|&k| !overrides[k].matrices.is_empty())
+                    .collect();
+                let id = *set_of.entry(with_matrices).or_insert_with_key(|combo| {
+                    let mut set = params[0].clone();
+                    for &k in combo {
+                        for (key, mat) in &overrides[k].matrices {
+                            *set.get_mut(key) = mat.clone();
+                        }
+                    }
+                    params.push(set);
+                    (params.len() - 1) as u32
+                });
+                ids.push(id);
+            }
+            match windows.last() {
+                Some(w) if w.ids == ids && w.p == p => {}
+                _ => windows.push(Window { first, ids, p }),
+            }
+        }
+        (params, windows)
+    }
+
+    /// The index of the window holding time step `t` (1-based).
+    pub fn window_index(&self, t: usize) -> usize {
+        self.windows.partition_point(|w| w.first <= t) - 1
+    }
+
+    /// The window holding time step `t`.
+    pub fn window(&self, t: usize) -> &Window {
+        &self.windows[self.window_index(t)]
+    }
+
+    /// The parameter windows, in time order; the last one is open-ended.
+    pub fn windows(&self) -> &[Window] {
+        &self.windows
+    }
+
+    /// The parameters of subsystem `i` (1-based) at time `t`.
+    pub fn params(&self, t: usize, i: usize) -> &Params {
+        &self.params[self.windows[self.window_index(t)].ids[i - 1] as usize]
+    }
+
+    /// The parameter set with index `id` (as found in [`Window::ids`]).
+    pub fn param_set(&self, id: u32) -> &Params {
+        &self.params[id as usize]
+    }
+
+    /// Every distinct parameter set.
+    pub fn param_sets(&self) -> &[Params] {
+        &self.params
+    }
+
+    /// The arrival probability `p(t,i)`.
+    pub fn p(&self, t: usize, i: usize) -> f64 {
+        self.windows[self.window_index(t)].p[i - 1]
+    }
+
+    /// Whether a parameter (`A`…`Q` or `p`) varies in time and in space.
+    pub fn variation(&self, key: &str) -> (bool, bool) {
+        let (mut time, mut space) = (false, false);
+        let value = |w: &Window, i: usize| -> Vec<f64> {
+            if key == "p" {
+                vec![w.p[i]]
+            } else {
+                self.params[w.ids[i] as usize].get(key).as_slice().to_vec()
+            }
+        };
+        let w0 = &self.windows[0];
+        for w in &self.windows {
+            for i in 0..self.subsystems {
+                let v = value(w, i);
+                space |= v != value(w, 0);
+                time |= v != value(w0, i);
+            }
+        }
+        (time, space)
+    }
+
+    /// True when subsystems exchange signals at some time: `N > 1`, `n⁺ + n⁻ > 0`, and some
+    /// `B` and `D` are non-zero.
+    pub fn is_coupled(&self) -> bool {
+        self.subsystems > 1
+            && self.dims.s() > 0
+            && self.params.iter().any(|p| p.B.amax() > 0.0)
+            && self.params.iter().any(|p| p.D.amax() > 0.0)
+    }
+
+    /// True when every process noise covariance `Q` is zero (the paper's setting).
+    pub fn q_is_zero(&self) -> bool {
+        self.params.iter().all(|p| p.Q.amax() == 0.0)
+    }
+}

@@ -1,0 +1,1282 @@
+//! `sisfilt estimate` from the command line (SPEC §3, §4, §6, §7): the estimates file and its
+//! JSON form, the shortest workflow through `run.json`, determinism, bad measurement files,
+//! atomic output, known dropouts, `--paper`, `--solver transfer`, `--predicted` and piping.
+//!
+//! Self-contained: every helper lives in this file, and every test works in its own temporary
+//! folder.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use assert_cmd::Command;
+use sha2::Digest;
+use tempfile::TempDir;
+
+// ------------------------------------------------------------------------------ helpers
+
+/// The `sisfilt` binary of this crate, without a backtrace setting from the environment.
+fn sisfilt() -> Command {
+    let mut cmd = Command::cargo_bin("sisfilt").expect("the sisfilt binary");
+    cmd.env_remove("RUST_BACKTRACE");
+    cmd
+}
+
+fn configs_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
+}
+
+/// A config shipped in `configs/`.
+fn shipped(name: &str) -> PathBuf {
+    let p = configs_dir().join(name);
+    assert!(p.is_file(), "{} is missing", p.display());
+    p
+}
+
+/// Every config shipped in `configs/`.
+fn shipped_configs() -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = std::fs::read_dir(configs_dir())
+        .expect("configs/ exists")
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    out.sort();
+    assert!(!out.is_empty(), "no configs shipped");
+    out
+}
+
+fn tmp() -> TempDir {
+    tempfile::tempdir().expect("a temporary folder")
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8(bytes.to_vec()).expect("utf-8 output")
+}
+
+fn read(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn write(path: &Path, content: impl AsRef<[u8]>) {
+    std::fs::write(path, content).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+}
+
+/// Describes a finished command for assertion messages.
+fn describe(out: &Output) -> String {
+    format!(
+        "status {:?}\n--- stderr:\n{}--- stdout (first 400 bytes):\n{}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout[..out.stdout.len().min(400)])
+    )
+}
+
+/// Runs the command and asserts exit 0.
+fn ok(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("sisfilt runs");
+    assert!(out.status.success(), "expected success: {}", describe(&out));
+    out
+}
+
+/// Runs the command and asserts the exit code.
+fn fails(cmd: &mut Command, code: i32) -> Output {
+    let out = cmd.output().expect("sisfilt runs");
+    assert_eq!(
+        out.status.code(),
+        Some(code),
+        "expected exit {code}: {}",
+        describe(&out)
+    );
+    out
+}
+
+/// `sisfilt simulate CONFIG --out DIR [extra…]`, asserted to succeed.
+fn simulate(config: &Path, dir: &Path, extra: &[&str]) {
+    ok(sisfilt()
+        .arg("simulate")
+        .arg(config)
+        .arg("--out")
+        .arg(dir)
+        .args(extra));
+    assert!(dir.join("measurements.csv").is_file());
+    assert!(dir.join("truth.csv").is_file());
+    assert!(dir.join("run.json").is_file());
+}
+
+/// `sisfilt estimate --config CONFIG --meas MEAS [extra…]` (not run yet).
+fn estimate(config: &Path, meas: &Path, extra: &[&str]) -> Command {
+    let mut cmd = sisfilt();
+    cmd.arg("estimate")
+        .arg("--config")
+        .arg(config)
+        .arg("--meas")
+        .arg(meas)
+        .args(extra);
+    cmd
+}
+
+/// The lines of standard error.
+fn stderr_lines(out: &Output) -> Vec<String> {
+    text(&out.stderr).lines().map(str::to_string).collect()
+}
+
+/// The `warning: ` lines of standard error.
+fn warnings(out: &Output) -> Vec<String> {
+    stderr_lines(out)
+        .into_iter()
+        .filter(|l| l.starts_with("warning: "))
+        .collect()
+}
+
+/// Asserts that standard error is exactly one line starting with `error: ` (SPEC §7) and
+/// returns it.
+fn one_error_line(out: &Output) -> String {
+    let err = text(&out.stderr);
+    let lines: Vec<&str> = err.lines().collect();
+    assert_eq!(lines.len(), 1, "expected one stderr line, got {err:?}");
+    assert!(
+        lines[0].starts_with("error: "),
+        "stderr does not start with `error: `: {err:?}"
+    );
+    assert!(
+        err.ends_with('\n'),
+        "stderr not newline-terminated: {err:?}"
+    );
+    lines[0].to_string()
+}
+
+/// Whether `msg` says `line N` for exactly this `N` (not `line N0…`).
+fn names_line(msg: &str, n: usize) -> bool {
+    let needle = format!("line {n}");
+    msg.match_indices(&needle).any(|(at, _)| {
+        !msg[at + needle.len()..]
+            .chars()
+            .next()
+            .is_some_and(|c| c.is_ascii_digit())
+    })
+}
+
+/// A CSV file (or output) as its header and rows of raw cells; every record must have the
+/// header's width.
+struct Csv {
+    header: Vec<String>,
+    rows: Vec<Vec<String>>,
+}
+
+impl Csv {
+    fn parse(bytes: &[u8]) -> Csv {
+        let mut r = csv::ReaderBuilder::new()
+            .has_headers(false)
+            .from_reader(bytes);
+        let mut records = r
+            .records()
+            .map(|rec| {
+                rec.expect("a well-formed CSV")
+                    .iter()
+                    .map(str::to_string)
+                    .collect()
+            })
+            .collect::<Vec<Vec<String>>>()
+            .into_iter();
+        let header = records.next().expect("a header line");
+        Csv {
+            header,
+            rows: records.collect(),
+        }
+    }
+
+    fn read(path: &Path) -> Csv {
+        Csv::parse(&read(path))
+    }
+
+    /// The `(t, i)` of every row.
+    fn indices(&self) -> Vec<(usize, usize)> {
+        self.rows
+            .iter()
+            .map(|r| (r[0].parse().unwrap(), r[1].parse().unwrap()))
+            .collect()
+    }
+
+    /// The value cells of every row (all but `t, i`) as numbers.
+    fn values(&self) -> Vec<Vec<f64>> {
+        self.rows
+            .iter()
+            .map(|r| {
+                r[2..]
+                    .iter()
+                    .map(|c| {
+                        c.parse::<f64>()
+                            .unwrap_or_else(|_| panic!("not a number: {c:?} in {r:?}"))
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+}
+
+/// The header of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n` (SPEC §6).
+fn estimates_header(n: usize) -> Vec<String> {
+    let mut h = vec!["t".to_string(), "i".to_string()];
+    h.extend((1..=n).map(|k| format!("x{k}")));
+    for r in 1..=n {
+        for c in r..=n {
+            h.push(format!("P{r}_{c}"));
+        }
+    }
+    h
+}
+
+/// Position of `P{k}_{k}` among the value cells (after `t, i`) of an estimates row.
+fn diag_positions(n: usize) -> Vec<usize> {
+    let h = estimates_header(n);
+    (1..=n)
+        .map(|k| {
+            h.iter()
+                .position(|c| *c == format!("P{k}_{k}"))
+                .expect("diagonal column")
+                - 2
+        })
+        .collect()
+}
+
+/// `(N, T, n)` of a simulated run, from its truth file `t,i,x1..xn,gamma`.
+fn dims_of_run(dir: &Path) -> (usize, usize, usize) {
+    let truth = Csv::read(&dir.join("truth.csv"));
+    let n = truth.header.len() - 3;
+    let idx = truth.indices();
+    let big_n = idx.iter().map(|p| p.1).max().unwrap();
+    let steps = idx.iter().map(|p| p.0).max().unwrap();
+    assert_eq!(idx.len(), big_n * steps);
+    (big_n, steps, n)
+}
+
+/// Every `(t, i)`, ordered by `t` then `i`.
+fn all_indices(big_n: usize, steps: usize) -> Vec<(usize, usize)> {
+    (1..=steps)
+        .flat_map(|t| (1..=big_n).map(move |i| (t, i)))
+        .collect()
+}
+
+/// Checks an estimates CSV: header, one row per `(t, i)` in order, finite numbers and a
+/// positive covariance diagonal.
+fn check_estimates(est: &Csv, big_n: usize, steps: usize, n: usize) {
+    assert_eq!(est.header, estimates_header(n));
+    assert_eq!(est.indices(), all_indices(big_n, steps));
+    let diag = diag_positions(n);
+    for (row, vals) in est.rows.iter().zip(est.values()) {
+        assert_eq!(vals.len(), n + n * (n + 1) / 2, "row {row:?}");
+        assert!(vals.iter().all(|v| v.is_finite()), "row {row:?}");
+        for &k in &diag {
+            assert!(vals[k] > 0.0, "non-positive variance in row {row:?}");
+        }
+    }
+}
+
+/// Whether the config's process noise `Q` is absent or zero (the paper's setting).
+fn q_is_zero(config: &Path) -> bool {
+    let value: toml::Value = toml::from_str(&String::from_utf8(read(config)).unwrap()).unwrap();
+    let Some(q) = value.get("model").and_then(|m| m.get("Q")) else {
+        return true;
+    };
+    q.as_array().unwrap().iter().all(|row| {
+        row.as_array().unwrap().iter().all(|v| {
+            v.as_float()
+                .or_else(|| v.as_integer().map(|k| k as f64))
+                .unwrap()
+                == 0.0
+        })
+    })
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    sha2::Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// A JSON value whose numbers are kept as their text, so that they can be parsed with the
+/// correctly rounded `str::parse::<f64>` (serde_json without `float_roundtrip` may be off by
+/// one unit in the last place).
+#[derive(Debug, Clone, PartialEq)]
+enum Json {
+    Null,
+    Bool(bool),
+    Num(String),
+    Str(String),
+    Arr(Vec<Json>),
+    Obj(Vec<(String, Json)>),
+}
+
+impl Json {
+    fn parse(text: &str) -> Json {
+        let b = text.as_bytes();
+        let mut pos = 0;
+        let v = Self::value(b, &mut pos);
+        Self::ws(b, &mut pos);
+        assert_eq!(pos, b.len(), "trailing characters after the JSON document");
+        v
+    }
+
+    fn ws(b: &[u8], pos: &mut usize) {
+        while *pos < b.len() && b[*pos].is_ascii_whitespace() {
+            *pos += 1;
+        }
+    }
+
+    fn value(b: &[u8], pos: &mut usize) -> Json {
+        Self::ws(b, pos);
+        match b[*pos] {
+            b'n' => Self::lit(b, pos, "null", Json::Null),
+            b't' => Self::lit(b, pos, "true", Json::Bool(true)),
+            b'f' => Self::lit(b, pos, "false", Json::Bool(false)),
+            b'"' => Json::Str(Self::string(b, pos)),
+            b'[' => {
+                *pos += 1;
+                let mut items = Vec::new();
+                Self::ws(b, pos);
+                if b[*pos] == b']' {
+                    *pos += 1;
+                    return Json::Arr(items);
+                }
+                loop {
+                    items.push(Self::value(b, pos));
+                    Self::ws(b, pos);
+                    *pos += 1;
+                    match b[*pos - 1] {
+                        b',' => continue,
+                        b']' => return Json::Arr(items),
+                        c => panic!("unexpected {:?} in an array", c as char),
+                    }
+                }
+            }
+            b'{' => {
+                *pos += 1;
+                let mut fields = Vec::new();
+                Self::ws(b, pos);
+                if b[*pos] == b'}' {
+                    *pos += 1;
+                    return Json::Obj(fields);
+                }
+                loop {
+                    Self::ws(b, pos);
+                    let key = Self::string(b, pos);
+                    Self::ws(b, pos);
+                    assert_eq!(b[*pos], b':');
+                    *pos += 1;
+                    fields.push((key, Self::value(b, pos)));
+                    Self::ws(b, pos);
+                    *pos += 1;
+                    match b[*pos - 1] {
+                        b',' => continue,
+                        b'}' => return Json::Obj(fields),
+                        c => panic!("unexpected {:?} in an object", c as char),
+                    }
+                }
+            }
+            _ => {
+                let start = *pos;
+                while *pos < b.len()
+                    && matches!(b[*pos], b'0'..=b'9' | b'-' | b'+' | b'.' | b'e' | b'E')
+                {
+                    *pos += 1;
+                }
+                assert!(*pos > start, "unexpected character at byte {start}");
+                Json::Num(String::from_utf8(b[start..*pos].to_vec()).unwrap())
+            }
+        }
+    }
+
+    fn lit(b: &[u8], pos: &mut usize, word: &str, v: Json) -> Json {
+        assert!(b[*pos..].starts_with(word.as_bytes()), "bad literal");
+        *pos += word.len();
+        v
+    }
+
+    fn string(b: &[u8], pos: &mut usize) -> String {
+        assert_eq!(b[*pos], b'"');
+        *pos += 1;
+        let start = *pos;
+        while b[*pos] != b'"' {
+            *pos += if b[*pos] == b'\\' { 2 } else { 1 };
+        }
+        *pos += 1;
+        // Escapes are kept raw; good enough for keys and comparisons here.
+        String::from_utf8(b[start..*pos - 1].to_vec()).unwrap()
+    }
+
+    fn get(&self, key: &str) -> Option<&Json> {
+        match self {
+            Json::Obj(fields) => fields.iter().find(|(k, _)| k == key).map(|(_, v)| v),
+            _ => None,
+        }
+    }
+}
+
+/// The `estimates` rows of a JSON output, each number parsed from its exact text.
+fn json_estimates(doc: &str) -> Vec<Vec<f64>> {
+    let Some(Json::Arr(rows)) = Json::parse(doc).get("estimates").cloned() else {
+        panic!("no `estimates` array");
+    };
+    rows.iter()
+        .map(|row| match row {
+            Json::Arr(cells) => cells
+                .iter()
+                .map(|c| match c {
+                    Json::Num(s) => s.parse::<f64>().expect("a JSON number"),
+                    other => panic!("not a number: {other:?}"),
+                })
+                .collect(),
+            other => panic!("estimates row is not an array: {other:?}"),
+        })
+        .collect()
+}
+
+/// Asserts that JSON estimate rows carry exactly the numbers of the CSV rows (same bits).
+fn assert_json_rows_match_csv(json_rows: &[Vec<f64>], csv: &Csv) {
+    assert_eq!(json_rows.len(), csv.rows.len(), "row count");
+    for (j, c) in json_rows.iter().zip(&csv.rows) {
+        assert_eq!(j.len(), c.len(), "row width: {c:?}");
+        assert_eq!(j[0], c[0].parse::<usize>().unwrap() as f64, "t of {c:?}");
+        assert_eq!(j[1], c[1].parse::<usize>().unwrap() as f64, "i of {c:?}");
+        for (a, b) in j[2..].iter().zip(&c[2..]) {
+            let b: f64 = b.parse().unwrap();
+            assert_eq!(a.to_bits(), b.to_bits(), "{a} vs {b} in row {c:?}");
+        }
+    }
+}
+
+/// The largest absolute difference between the value cells of two estimate files with the
+/// same rows.
+fn max_abs_diff(a: &Csv, b: &Csv) -> f64 {
+    assert_eq!(a.header, b.header);
+    assert_eq!(a.indices(), b.indices());
+    a.values()
+        .iter()
+        .zip(b.values())
+        .flat_map(|(x, y)| {
+            x.iter()
+                .zip(y)
+                .map(|(p, q)| (p - q).abs())
+                .collect::<Vec<_>>()
+        })
+        .fold(0.0, f64::max)
+}
+
+// ----------------------------------------------------------------------------- 1. round trip
+
+#[test]
+fn round_trip_on_every_shipped_config() {
+    for config in shipped_configs() {
+        let dir = tmp();
+        let run = dir.path().join("run");
+        simulate(&config, &run, &[]);
+        let (big_n, steps, n) = dims_of_run(&run);
+        let est_path = run.join("est.csv");
+        let out = ok(estimate(&config, &run.join("measurements.csv"), &[])
+            .arg("--truth")
+            .arg(run.join("truth.csv"))
+            .arg("--out")
+            .arg(&est_path));
+        let name = config.display();
+        assert!(out.stdout.is_empty(), "{name}: data on stdout with --out");
+        check_estimates(&Csv::read(&est_path), big_n, steps, n);
+
+        let lines = stderr_lines(&out);
+        assert!(
+            lines
+                .iter()
+                .all(|l| l.starts_with("warning: ") || l.starts_with("accuracy: ")),
+            "{name}: unexpected stderr {lines:?}"
+        );
+        let accuracy: Vec<&String> = lines
+            .iter()
+            .filter(|l| l.starts_with("accuracy: "))
+            .collect();
+        assert_eq!(accuracy.len(), 1, "{name}: {lines:?}");
+        assert!(accuracy[0].contains("RMSE"), "{name}: {lines:?}");
+
+        let q_warning = warnings(&out).iter().any(|w| w.contains("Q = 0"));
+        if config.file_name().unwrap() == "paper.toml" {
+            assert!(q_is_zero(&config));
+            assert!(
+                q_warning,
+                "{name}: no `warning: ` line about Q = 0: {lines:?}"
+            );
+        }
+        if !q_is_zero(&config) {
+            assert!(!q_warning, "{name}: Q > 0 but warned about Q = 0");
+        }
+    }
+}
+
+// -------------------------------------------------------------- 2. the shortest workflow
+
+#[test]
+fn config_and_inputs_come_from_run_json() {
+    // platoon has inputs (inputs.csv is written), paper has none.
+    for name in ["platoon.toml", "paper.toml"] {
+        let config = shipped(name);
+        let dir = tmp();
+        let run = dir.path().join("data");
+        simulate(&config, &run, &[]);
+        let has_inputs = run.join("inputs.csv").is_file();
+        assert_eq!(has_inputs, name == "platoon.toml");
+
+        let short =
+            ok(sisfilt()
+                .current_dir(&run)
+                .args(["estimate", "--meas", "measurements.csv"]));
+        let mut explicit = estimate(&config, &run.join("measurements.csv"), &[]);
+        if has_inputs {
+            explicit.arg("--inputs").arg(run.join("inputs.csv"));
+        }
+        let explicit = ok(&mut explicit);
+        assert!(!short.stdout.is_empty());
+        assert!(
+            short.stdout == explicit.stdout,
+            "{name}: `estimate --meas measurements.csv` differs from the explicit run"
+        );
+        // The same from another folder, with the measurement file's folder in its path.
+        let elsewhere = ok(sisfilt()
+            .current_dir(dir.path())
+            .args(["estimate", "--meas"])
+            .arg(Path::new("data").join("measurements.csv")));
+        assert!(
+            elsewhere.stdout == explicit.stdout,
+            "{name}: data/measurements.csv"
+        );
+        let (big_n, steps, n) = dims_of_run(&run);
+        check_estimates(&Csv::parse(&short.stdout), big_n, steps, n);
+    }
+}
+
+#[test]
+fn without_run_json_config_is_required() {
+    let dir = tmp();
+    let run = dir.path().join("run");
+    simulate(&shipped("platoon.toml"), &run, &[]);
+    let lone = dir.path().join("lone");
+    std::fs::create_dir(&lone).unwrap();
+    std::fs::copy(run.join("measurements.csv"), lone.join("measurements.csv")).unwrap();
+
+    let out = fails(
+        sisfilt()
+            .current_dir(&lone)
+            .args(["estimate", "--meas", "measurements.csv"]),
+        2,
+    );
+    assert!(out.stdout.is_empty());
+    let line = one_error_line(&out);
+    assert!(line.contains("--config"), "{line}");
+
+    let out = fails(
+        sisfilt()
+            .args(["estimate", "--meas"])
+            .arg(lone.join("measurements.csv")),
+        2,
+    );
+    assert!(out.stdout.is_empty());
+    assert!(one_error_line(&out).contains("--config"));
+
+    // Standard input has no folder, so no run.json, even when the data came from simulate.
+    let out = fails(
+        sisfilt()
+            .current_dir(&run)
+            .args(["estimate", "--meas", "-"])
+            .write_stdin(read(&run.join("measurements.csv"))),
+        2,
+    );
+    assert!(out.stdout.is_empty());
+    assert!(one_error_line(&out).contains("--config"));
+}
+
+// --------------------------------------------------------------------------------- 3. JSON
+
+#[test]
+fn json_output_carries_the_csv_numbers_and_metadata() {
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    let run = dir.path().join("run");
+    simulate(&config, &run, &[]);
+    let meas = run.join("measurements.csv");
+    let truth = run.join("truth.csv");
+    let (_, _, n) = dims_of_run(&run);
+
+    let csv_out = ok(&mut estimate(&config, &meas, &[]));
+    let csv = Csv::parse(&csv_out.stdout);
+    let config_sha = sha256_hex(&read(&config));
+
+    for with_truth in [false, true] {
+        let mut cmd = estimate(&config, &meas, &["--format", "json"]);
+        if with_truth {
+            cmd.arg("--truth").arg(&truth);
+        }
+        let out = ok(&mut cmd);
+        let doc = text(&out.stdout);
+        let v: serde_json::Value = serde_json::from_str(&doc).expect("valid JSON");
+
+        let columns: Vec<String> = serde_json::from_value(v["columns"].clone()).unwrap();
+        assert_eq!(columns, csv.header);
+        assert_json_rows_match_csv(&json_estimates(&doc), &csv);
+        assert_eq!(
+            v["estimates"].as_array().unwrap().len(),
+            csv.rows.len(),
+            "serde_json sees the same rows"
+        );
+
+        assert_eq!(
+            v["sisfilt_version"].as_str(),
+            Some(env!("CARGO_PKG_VERSION"))
+        );
+        let sha = v["config"]["sha256"].as_str().expect("config.sha256");
+        assert_eq!(sha.len(), 64, "{sha}");
+        assert!(
+            sha.chars()
+                .all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c)),
+            "{sha}"
+        );
+        assert_eq!(sha, config_sha, "sha256 of the config file");
+        let options = v["options"].as_object().expect("an `options` object");
+        for (key, default) in [
+            ("solver", "banded"),
+            ("second_moment", "local"),
+            ("interconnect_from", "filtered"),
+            ("dropouts", "unknown"),
+        ] {
+            assert_eq!(options[key].as_str(), Some(default), "options.{key}");
+        }
+
+        let accuracy = v.get("accuracy").expect("an `accuracy` key");
+        if with_truth {
+            let rmse = accuracy["rmse"].as_array().expect("accuracy.rmse");
+            assert_eq!(rmse.len(), n);
+            assert!(rmse.iter().all(|r| r.as_f64().is_some_and(|r| r > 0.0)));
+            let anees = accuracy.get("anees").expect("accuracy.anees");
+            assert!(anees.is_null() || anees.as_f64().is_some_and(|a| a > 0.0));
+            // platoon has Q > 0: its ANEES is finite.
+            assert!(anees.is_f64(), "{anees}");
+        } else {
+            assert!(accuracy.is_null(), "accuracy without --truth: {accuracy}");
+        }
+    }
+
+    // `--out x.json` means JSON: the same document as `--format json` on standard output.
+    let stdout_json = ok(&mut estimate(&config, &meas, &["--format", "json"])).stdout;
+    let file = dir.path().join("x.json");
+    let out = ok(estimate(&config, &meas, &[]).arg("--out").arg(&file));
+    assert!(out.stdout.is_empty());
+    assert!(
+        read(&file) == stdout_json,
+        "--out x.json differs from --format json"
+    );
+    // An explicit --format wins over the extension.
+    let file = dir.path().join("y.json");
+    ok(estimate(&config, &meas, &["--format", "csv"])
+        .arg("--out")
+        .arg(&file));
+    assert!(read(&file) == csv_out.stdout, "--format csv --out y.json");
+}
+
+#[test]
+fn json_from_run_json_hashes_the_same_config() {
+    let config = shipped("paper.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let out = ok(sisfilt().current_dir(dir.path()).args([
+        "estimate",
+        "--meas",
+        "measurements.csv",
+        "--format",
+        "json",
+    ]));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        v["config"]["sha256"].as_str(),
+        Some(sha256_hex(&read(&config)).as_str())
+    );
+}
+
+// -------------------------------------------------------------------------- 4. determinism
+
+#[test]
+fn two_runs_give_identical_output() {
+    let config = shipped("heat_rod.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+    let truth = dir.path().join("truth.csv");
+    for format in ["csv", "json"] {
+        let run = || {
+            ok(estimate(&config, &meas, &["--format", format])
+                .arg("--truth")
+                .arg(&truth))
+        };
+        let (a, b) = (run(), run());
+        assert!(!a.stdout.is_empty());
+        assert!(
+            a.stdout == b.stdout,
+            "{format}: stdout differs between runs"
+        );
+        assert_eq!(a.stderr, b.stderr, "{format}: stderr differs between runs");
+    }
+    // And through files.
+    let (fa, fb) = (dir.path().join("a.csv"), dir.path().join("b.csv"));
+    ok(estimate(&config, &meas, &[]).arg("--out").arg(&fa));
+    ok(estimate(&config, &meas, &[]).arg("--out").arg(&fb));
+    assert!(read(&fa) == read(&fb));
+}
+
+// -------------------------------------------------------------- 5. bad measurement files
+
+/// A simulated platoon run (Q > 0, stable: no warnings) and its measurement lines.
+struct BadFileSetup {
+    dir: TempDir,
+    config: PathBuf,
+    lines: Vec<String>,
+}
+
+impl BadFileSetup {
+    fn new() -> Self {
+        let dir = tmp();
+        let config = shipped("platoon.toml");
+        simulate(&config, &dir.path().join("run"), &[]);
+        let lines = text(&read(&dir.path().join("run").join("measurements.csv")))
+            .lines()
+            .map(str::to_string)
+            .collect();
+        BadFileSetup { dir, config, lines }
+    }
+
+    /// Writes `name` with the given lines (each followed by a newline).
+    fn file(&self, name: &str, lines: &[String]) -> PathBuf {
+        let path = self.dir.path().join(name);
+        let mut body = lines.join("\n");
+        body.push('\n');
+        write(&path, body);
+        path
+    }
+}
+
+/// Line 45 of a platoon measurement file (N = 20) is the row t = 3, i = 4.
+const BAD: usize = 45;
+
+/// The lines with line `at` (1-based) changed by `f`.
+fn edit_line(lines: &[String], at: usize, f: impl Fn(&str) -> String) -> Vec<String> {
+    let mut out = lines.to_vec();
+    out[at - 1] = f(&lines[at - 1]);
+    out
+}
+
+/// Replaces the last cell of a CSV line.
+fn last_cell(line: &str, cell: &str) -> String {
+    let cut = line.rfind(',').unwrap();
+    format!("{},{cell}", &line[..cut])
+}
+
+#[test]
+fn bad_measurement_files_name_file_and_line() {
+    let s = BadFileSetup::new();
+    let l = &s.lines;
+    assert_eq!(
+        l[BAD - 1].split(',').take(2).collect::<Vec<_>>(),
+        ["3", "4"]
+    );
+    let last = l.len();
+
+    let mut header = l.clone();
+    header[0] = "t,i,y1,z2".into();
+    let mut missing = l.clone();
+    missing.remove(BAD - 1);
+    let mut duplicated = l.clone();
+    duplicated.insert(BAD, l[BAD - 1].clone());
+    let mut swapped = l.clone();
+    swapped.swap(BAD - 1, BAD);
+
+    // (file name, lines, the line the error must name, something the message must say)
+    let cases: Vec<(&str, Vec<String>, usize, Option<&str>)> = vec![
+        ("wrong_header.csv", header, 1, None),
+        ("missing_row.csv", missing, BAD, None),
+        ("duplicated_row.csv", duplicated, BAD + 1, None),
+        ("out_of_order.csv", swapped, BAD, None),
+        (
+            "extra_column.csv",
+            edit_line(l, BAD, |x| format!("{x},0.5")),
+            BAD,
+            None,
+        ),
+        (
+            "missing_column.csv",
+            edit_line(l, BAD, |x| x[..x.rfind(',').unwrap()].to_string()),
+            BAD,
+            None,
+        ),
+        (
+            "not_a_number.csv",
+            edit_line(l, BAD, |x| last_cell(x, "abc")),
+            BAD,
+            None,
+        ),
+        (
+            "nan.csv",
+            edit_line(l, BAD, |x| last_cell(x, "NaN")),
+            BAD,
+            None,
+        ),
+        (
+            "inf.csv",
+            edit_line(l, BAD, |x| last_cell(x, "inf")),
+            BAD,
+            None,
+        ),
+        (
+            "minus_inf.csv",
+            edit_line(l, BAD, |x| last_cell(x, "-inf")),
+            BAD,
+            None,
+        ),
+        (
+            "infinity.csv",
+            edit_line(l, BAD, |x| last_cell(x, "infinity")),
+            BAD,
+            None,
+        ),
+        (
+            "overflow.csv",
+            edit_line(l, BAD, |x| last_cell(x, "1e999")),
+            BAD,
+            None,
+        ),
+        (
+            "empty_cell.csv",
+            edit_line(l, BAD, |x| last_cell(x, "")),
+            BAD,
+            Some("--dropouts known"),
+        ),
+        (
+            "bad_t.csv",
+            edit_line(l, BAD, |x| format!("3.0{}", &x[1..])),
+            BAD,
+            None,
+        ),
+    ];
+    for (name, lines, line, says) in cases {
+        let path = s.file(name, &lines);
+        let out = fails(&mut estimate(&s.config, &path, &[]), 2);
+        let msg = one_error_line(&out);
+        assert!(msg.contains(name), "{name}: file not named: {msg}");
+        assert!(
+            names_line(&msg, line),
+            "{name}: expected `line {line}`: {msg}"
+        );
+        if let Some(says) = says {
+            assert!(msg.contains(says), "{name}: should mention {says}: {msg}");
+        }
+    }
+
+    // A truncated last line: the file stops in the middle of the last row, without newline.
+    let path = s.dir.path().join("truncated.csv");
+    let mut body = l[..last - 1].join("\n");
+    body.push('\n');
+    body.push_str(&l[last - 1][..l[last - 1].rfind(',').unwrap()]);
+    write(&path, body);
+    let out = fails(&mut estimate(&s.config, &path, &[]), 2);
+    let msg = one_error_line(&out);
+    assert!(msg.contains("truncated.csv"), "{msg}");
+    assert!(names_line(&msg, last), "expected `line {last}`: {msg}");
+
+    // A file that stops after a complete row in the middle of a time step.
+    let path = s.file("short_step.csv", &l[..BAD]);
+    let msg = one_error_line(&fails(&mut estimate(&s.config, &path, &[]), 2));
+    assert!(msg.contains("short_step.csv"), "{msg}");
+
+    // No such file.
+    let path = s.dir.path().join("no_such_file.csv");
+    let out = fails(&mut estimate(&s.config, &path, &[]), 2);
+    assert!(out.stdout.is_empty());
+    assert!(one_error_line(&out).contains("no_such_file.csv"));
+
+    // Only a header.
+    let path = s.file("header_only.csv", &l[..1]);
+    let msg = one_error_line(&fails(&mut estimate(&s.config, &path, &[]), 2));
+    assert!(msg.contains("header_only.csv"), "{msg}");
+
+    // An empty file.
+    let path = s.dir.path().join("empty.csv");
+    write(&path, "");
+    let msg = one_error_line(&fails(&mut estimate(&s.config, &path, &[]), 2));
+    assert!(msg.contains("empty.csv"), "{msg}");
+}
+
+/// Errors found before the output is opened print nothing on standard output.
+#[test]
+fn early_errors_leave_stdout_empty() {
+    let s = BadFileSetup::new();
+    let mut header = s.lines.clone();
+    header[0] = "t,i,y1".into();
+    let path = s.file("wrong_header.csv", &header);
+    let out = fails(&mut estimate(&s.config, &path, &[]), 2);
+    assert!(out.stdout.is_empty(), "{}", describe(&out));
+    let out = fails(
+        &mut estimate(&s.config, &s.dir.path().join("none.csv"), &[]),
+        2,
+    );
+    assert!(out.stdout.is_empty(), "{}", describe(&out));
+}
+
+/// SPEC §7: standard output carries only data, so a run that fails on bad input must not
+/// leave a truncated table there (standard output is held in a 1 MiB buffer and discarded on
+/// error; only a larger output can have reached it before the error).
+#[test]
+fn mid_file_errors_leave_stdout_empty() {
+    let s = BadFileSetup::new();
+    let mut missing = s.lines.clone();
+    missing.remove(BAD - 1);
+    let path = s.file("missing_row.csv", &missing);
+    let out = fails(&mut estimate(&s.config, &path, &[]), 2);
+    assert!(out.stdout.is_empty(), "{}", describe(&out));
+
+    let nan = edit_line(&s.lines, s.lines.len() - 3, |x| last_cell(x, "NaN"));
+    let path = s.file("late_nan.csv", &nan);
+    for format in ["csv", "json"] {
+        let out = fails(&mut estimate(&s.config, &path, &["--format", format]), 2);
+        assert!(out.stdout.is_empty(), "{format}: {}", describe(&out));
+    }
+}
+
+#[test]
+fn out_into_a_missing_folder_is_bad_input() {
+    let s = BadFileSetup::new();
+    let meas = s.dir.path().join("run").join("measurements.csv");
+    let missing = s.dir.path().join("no_such_folder");
+    let out = fails(
+        estimate(&s.config, &meas, &[])
+            .arg("--out")
+            .arg(missing.join("est.csv")),
+        2,
+    );
+    assert!(out.stdout.is_empty());
+    let msg = one_error_line(&out);
+    assert!(msg.contains("no_such_folder"), "{msg}");
+    assert!(!missing.exists(), "estimate created the folder");
+}
+
+#[test]
+fn failed_run_keeps_the_old_output_file() {
+    let s = BadFileSetup::new();
+    let bad_at = s.lines.len() / 2;
+    let bad = edit_line(&s.lines, bad_at, |x| last_cell(x, "oops"));
+    let meas = s.file("bad_middle.csv", &bad);
+    let out_dir = s.dir.path().join("out");
+    std::fs::create_dir(&out_dir).unwrap();
+
+    for name in ["est.csv", "est.json"] {
+        let dest = out_dir.join(name);
+        let old = b"old content\nthat must survive\n";
+        write(&dest, old);
+        let out = fails(estimate(&s.config, &meas, &[]).arg("--out").arg(&dest), 2);
+        assert!(out.stdout.is_empty());
+        let msg = one_error_line(&out);
+        assert!(names_line(&msg, bad_at), "{msg}");
+        assert_eq!(read(&dest), old, "{name}: the old file was touched");
+    }
+    // No temporary file is left behind.
+    let mut names: Vec<String> = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["est.csv", "est.json"]);
+
+    // A good run replaces the file.
+    let good = s.dir.path().join("run").join("measurements.csv");
+    let dest = out_dir.join("est.csv");
+    ok(estimate(&s.config, &good, &[]).arg("--out").arg(&dest));
+    let (big_n, steps, n) = dims_of_run(&s.dir.path().join("run"));
+    check_estimates(&Csv::read(&dest), big_n, steps, n);
+}
+
+// ------------------------------------------------------------------------ 6. known dropouts
+
+#[test]
+fn known_dropouts_read_marked_measurements() {
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &["--mark-missing"]);
+    let meas = dir.path().join("measurements.csv");
+    let (big_n, steps, n) = dims_of_run(dir.path());
+
+    let lines: Vec<String> = text(&read(&meas)).lines().map(str::to_string).collect();
+    let first_empty = lines
+        .iter()
+        .position(|l| l.split(',').any(str::is_empty))
+        .expect("--mark-missing left some cell empty")
+        + 1;
+
+    let out = ok(estimate(&config, &meas, &["--dropouts", "known"])
+        .arg("--truth")
+        .arg(dir.path().join("truth.csv")));
+    check_estimates(&Csv::parse(&out.stdout), big_n, steps, n);
+    assert!(
+        stderr_lines(&out)
+            .iter()
+            .any(|l| l.starts_with("accuracy: "))
+    );
+
+    // The default unknown mode rejects the empty cells and says what to do.
+    let out = fails(&mut estimate(&config, &meas, &[]), 2);
+    let msg = one_error_line(&out);
+    assert!(msg.contains("--dropouts known"), "{msg}");
+    assert!(msg.contains("measurements.csv"), "{msg}");
+    assert!(names_line(&msg, first_empty), "line {first_empty}: {msg}");
+
+    // The run.json route works in known mode too.
+    let short = ok(sisfilt().current_dir(dir.path()).args([
+        "estimate",
+        "--meas",
+        "measurements.csv",
+        "--dropouts",
+        "known",
+    ]));
+    let explicit = ok(estimate(&config, &meas, &["--dropouts", "known"])
+        .arg("--inputs")
+        .arg(dir.path().join("inputs.csv")));
+    assert!(short.stdout == explicit.stdout);
+}
+
+// ------------------------------------------------------------------ 7. --paper and solvers
+
+#[test]
+fn paper_preset_runs_and_differs_from_default() {
+    let config = shipped("paper.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+    let (big_n, steps, n) = dims_of_run(dir.path());
+
+    let default = ok(&mut estimate(&config, &meas, &[]));
+    let paper = ok(&mut estimate(&config, &meas, &["--paper"]));
+    let paper_csv = Csv::parse(&paper.stdout);
+    assert_eq!(paper_csv.header, estimates_header(n));
+    assert_eq!(paper_csv.indices(), all_indices(big_n, steps));
+    assert!(paper.stdout != default.stdout, "--paper changed nothing");
+
+    // The preset's choices, and an explicit option winning over it (SPEC §4).
+    let json = |extra: &[&str]| -> serde_json::Value {
+        let mut args = vec!["--format", "json"];
+        args.extend_from_slice(extra);
+        serde_json::from_slice(&ok(&mut estimate(&config, &meas, &args)).stdout).unwrap()
+    };
+    let v = json(&["--paper"]);
+    assert_eq!(v["options"]["solver"], "transfer");
+    assert_eq!(v["options"]["interconnect_from"], "predicted");
+    assert_eq!(v["options"]["second_moment"], "paper");
+    let v = json(&["--paper", "--solver", "banded"]);
+    assert_eq!(v["options"]["solver"], "banded");
+    assert_eq!(v["options"]["interconnect_from"], "predicted");
+    // The output stays x̂(t|t) under --paper.
+    assert_eq!(v["options"]["output"], "filtered");
+}
+
+/// A config of a long chain whose transfer recursion blows up (SPEC §2).
+const LONG_CHAIN: &str = "\
+subsystems = 60
+steps = 30
+seed = 5
+
+[interconnection]
+plus = 1
+minus = 1
+
+[model]
+A = [[0.7, 0.1], [-0.1, 0.6]]
+B = [[0.1, 0.1], [0.0, 0.1]]
+D = [[1.0, 0.0], [0.0, 1.0]]
+G = [[0.25, -0.3], [0.28, 0.12]]
+J = [[1.0, 0.0]]
+M = [[0.05]]
+Q = [[0.01, 0.0], [0.0, 0.01]]
+
+[dropout]
+p = 0.8
+
+[initial]
+cov = [[1.0, 0.0], [0.0, 1.0]]
+";
+
+#[test]
+fn transfer_solver_warns_on_a_long_chain() {
+    let dir = tmp();
+    let config = dir.path().join("long.toml");
+    write(&config, LONG_CHAIN);
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+
+    let out = ok(&mut estimate(&config, &meas, &["--solver", "transfer"]));
+    let w = warnings(&out);
+    assert!(
+        w.iter().any(|l| l.contains("transfer")),
+        "no `warning: ` line mentioning transfer: {w:?}"
+    );
+    let banded = ok(&mut estimate(&config, &meas, &["--solver", "banded"]));
+    assert!(
+        !warnings(&banded).iter().any(|l| l.contains("transfer")),
+        "banded solver warned about transfer"
+    );
+}
+
+#[test]
+fn transfer_solver_matches_banded_where_it_is_accurate() {
+    let dir = tmp();
+    // paper.toml (N = 6), and platoon with an invertible G22 (its own G is 0, on which the
+    // transfer recursion is undefined).
+    let platoon_g22 = dir.path().join("platoon_g22.toml");
+    let platoon = text(&read(&shipped("platoon.toml")));
+    assert!(platoon.contains("\nG = [[0.0, 0.0], [0.0, 0.0]]\n"));
+    write(
+        &platoon_g22,
+        platoon.replace(
+            "\nG = [[0.0, 0.0], [0.0, 0.0]]\n",
+            "\nG = [[0.0, 0.0], [0.0, 0.8]]\n",
+        ),
+    );
+    for config in [shipped("paper.toml"), platoon_g22] {
+        let run = dir
+            .path()
+            .join(config.file_stem().unwrap().to_string_lossy().into_owned());
+        simulate(&config, &run, &[]);
+        let meas = run.join("measurements.csv");
+        let transfer = ok(&mut estimate(&config, &meas, &["--solver", "transfer"]));
+        let banded = ok(&mut estimate(&config, &meas, &["--solver", "banded"]));
+        assert!(
+            !warnings(&transfer).iter().any(|l| l.contains("transfer")),
+            "{}: {:?}",
+            config.display(),
+            warnings(&transfer)
+        );
+        let diff = max_abs_diff(&Csv::parse(&transfer.stdout), &Csv::parse(&banded.stdout));
+        assert!(
+            diff <= 1e-9,
+            "{}: transfer vs banded {diff:e}",
+            config.display()
+        );
+    }
+}
+
+#[test]
+fn transfer_solver_rejects_singular_g22_on_platoon() {
+    // platoon.toml has G = 0: every interior G22 is singular, which the transfer solver
+    // cannot handle (SPEC §2); that is bad input, and the message points to banded.
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let out = fails(
+        &mut estimate(
+            &config,
+            &dir.path().join("measurements.csv"),
+            &["--solver", "transfer"],
+        ),
+        2,
+    );
+    let msg = one_error_line(&out);
+    assert!(msg.contains("G22") && msg.contains("banded"), "{msg}");
+}
+
+// ---------------------------------------------------------------------------- 8. --predicted
+
+#[test]
+fn predicted_output() {
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+    let truth = dir.path().join("truth.csv");
+    let (big_n, steps, n) = dims_of_run(dir.path());
+
+    let filtered = Csv::parse(&ok(&mut estimate(&config, &meas, &[])).stdout);
+    let out = ok(estimate(&config, &meas, &["--predicted"])
+        .arg("--truth")
+        .arg(&truth));
+    let predicted = Csv::parse(&out.stdout);
+    check_estimates(&predicted, big_n, steps, n);
+    assert_eq!(predicted.rows.len(), filtered.rows.len());
+
+    let (fv, pv) = (filtered.values(), predicted.values());
+    for (k, (f, p)) in fv.iter().zip(&pv).enumerate() {
+        assert!(
+            f[..n] != p[..n],
+            "row {:?}: predicted estimate equals the filtered one",
+            predicted.rows[k]
+        );
+    }
+    // Row t holds T(t+1); the filtered P(t+1|t+1) = T(t+1) − (a PSD term) is no larger on the
+    // diagonal.
+    let diag = diag_positions(n);
+    for k in 0..(steps - 1) * big_n {
+        for &d in &diag {
+            let (prior, post) = (pv[k][d], fv[k + big_n][d]);
+            assert!(
+                post <= prior * (1.0 + 1e-12),
+                "row {:?}: P(t+1|t+1) {post} > T(t+1) {prior}",
+                predicted.rows[k]
+            );
+        }
+    }
+
+    assert!(
+        stderr_lines(&out)
+            .iter()
+            .any(|l| l.starts_with("accuracy: ") && l.contains("RMSE")),
+        "{}",
+        describe(&out)
+    );
+    // In JSON, the last row is not scored: (T − 1)·N terms.
+    let out = ok(
+        estimate(&config, &meas, &["--predicted", "--format", "json"])
+            .arg("--truth")
+            .arg(&truth),
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["options"]["output"], "predicted");
+    let acc = &v["accuracy"];
+    assert!(acc["rmse"].is_array(), "{acc}");
+    if let Some(terms) = acc.get("terms") {
+        assert_eq!(terms.as_u64(), Some(((steps - 1) * big_n) as u64));
+    }
+}
+
+// ----------------------------------------------------------------------------- 9. piping
+
+#[test]
+fn measurements_from_standard_input() {
+    let config = shipped("heat_rod.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+    let truth = dir.path().join("truth.csv");
+
+    let from_file = ok(estimate(&config, &meas, &[]).arg("--truth").arg(&truth));
+    let piped = ok(estimate(&config, Path::new("-"), &[])
+        .arg("--truth")
+        .arg(&truth)
+        .write_stdin(read(&meas)));
+    assert!(!piped.stdout.is_empty());
+    assert!(
+        piped.stdout == from_file.stdout,
+        "stdin differs from the file"
+    );
+    assert_eq!(piped.stderr, from_file.stderr);
+
+    // `--out -` is standard output too.
+    let dashed = ok(estimate(&config, Path::new("-"), &["--out", "-"]).write_stdin(read(&meas)));
+    assert!(dashed.stdout == from_file.stdout);
+
+    // Errors in piped data still name the line.
+    let lines: Vec<String> = text(&read(&meas)).lines().map(str::to_string).collect();
+    let bad = edit_line(&lines, 30, |x| last_cell(x, "x"));
+    let out = fails(
+        estimate(&config, Path::new("-"), &[]).write_stdin(bad.join("\n") + "\n"),
+        2,
+    );
+    let msg = one_error_line(&out);
+    assert!(names_line(&msg, 30), "{msg}");
+}

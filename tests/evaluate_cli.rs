@@ -1,0 +1,102 @@
+//! `sisfilt evaluate` from the command line: the table, the JSON, and independence of the
+//! thread count.
+
+use assert_cmd::Command;
+
+fn configs() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
+}
+
+/// Removes every key whose name contains `time` (the only clock readings, SPEC §7).
+fn strip_times(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Object(map) => {
+            map.retain(|k, _| !k.contains("time"));
+            map.values_mut().for_each(strip_times);
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(strip_times),
+        _ => {}
+    }
+}
+
+fn evaluate_json(threads: &str, dir: &std::path::Path) -> serde_json::Value {
+    let out = dir.join(format!("eval{threads}.json"));
+    Command::cargo_bin("sisfilt")
+        .unwrap()
+        .env("RAYON_NUM_THREADS", threads)
+        .arg("evaluate")
+        .arg(configs().join("paper.toml"))
+        .args(["--runs", "12", "--seed", "5", "--out"])
+        .arg(&out)
+        .assert()
+        .success();
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+}
+
+#[test]
+fn same_results_with_one_and_two_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut one = evaluate_json("1", dir.path());
+    let mut two = evaluate_json("2", dir.path());
+    strip_times(&mut one);
+    strip_times(&mut two);
+    assert_eq!(one, two);
+    // The JSON names every filter of SPEC §7, with figures.
+    let names: Vec<&str> = one["filters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "distributed",
+            "distributed-paper",
+            "centralized",
+            "centralized-known",
+            "naive"
+        ]
+    );
+    let central = &one["filters"][2];
+    assert_eq!(central["rmse_ratio"].as_f64(), Some(1.0));
+    assert!(central["accuracy"]["anees"].as_f64().is_some());
+}
+
+#[test]
+fn table_lists_filters_and_notes_skipped_ones() {
+    let out = Command::cargo_bin("sisfilt")
+        .unwrap()
+        .arg("evaluate")
+        .arg(configs().join("platoon.toml"))
+        .args(["--runs", "3"])
+        .assert()
+        .success();
+    let stdout = String::from_utf8(out.get_output().stdout.clone()).unwrap();
+    for name in [
+        "distributed",
+        "centralized",
+        "centralized-known",
+        "naive",
+        "ANEES",
+    ] {
+        assert!(stdout.contains(name), "{stdout}");
+    }
+    // The platoon has G22 = 0, so the paper's transfer solver cannot run: skipped with a note.
+    assert!(stdout.contains("distributed-paper  skipped"), "{stdout}");
+    assert!(stdout.contains("note: distributed-paper"), "{stdout}");
+
+    // Above the size limit the centralized filters are skipped, with a note.
+    let out = Command::cargo_bin("sisfilt")
+        .unwrap()
+        .arg("evaluate")
+        .arg(configs().join("platoon.toml"))
+        .args(["--runs", "2", "--max-lifted", "10"])
+        .assert()
+        .success();
+    let stdout = String::from_utf8(out.get_output().stdout.clone()).unwrap();
+    assert!(
+        stdout.contains("note: centralized:") && stdout.contains("--max-lifted"),
+        "{stdout}"
+    );
+}
