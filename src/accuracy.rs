@@ -120,6 +120,12 @@ impl Accuracy {
         }
     }
 
+    /// The NEES sums so far: the sum over resolved terms, their count, and the count of
+    /// infinite terms (for per-step averages taken as differences).
+    pub fn nees_totals(&self) -> (f64, u64, u64) {
+        (self.nees_sum, self.nees_terms, self.infinite)
+    }
+
     /// Adds another set of sums (e.g. from another Monte Carlo run).
     pub fn merge(&mut self, other: &Accuracy) {
         for (a, b) in self.sum_sq.iter_mut().zip(&other.sum_sq) {

@@ -31,8 +31,9 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Run the filter on a measurement file and write x̂(t|t) with P(t|t) for every (t, i).
     Estimate(EstimateArgs),
-    /// Monte Carlo comparison of the distributed filter with the paper's version, the optimal
-    /// centralized filter, a filter that knows the dropouts and a naive one.
+    /// Monte Carlo comparison of the distributed filter with the paper's version, the joint
+    /// band-k filter, the optimal centralized filter, a filter that knows the dropouts and a
+    /// naive one.
     Evaluate(EvaluateArgs),
 }
 
@@ -55,6 +56,13 @@ pub struct EvaluateArgs {
     /// Largest lifted state size N·n for the centralized filters (skipped above it).
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
+    /// The joint filter's covariance band K.
+    #[arg(long, value_name = "K", default_value_t = crate::filter::joint::DEFAULT_BAND)]
+    pub band: usize,
+    /// Run only these filters (comma-separated; default: all): distributed,
+    /// distributed-paper, joint, centralized, centralized-known, naive.
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    pub filters: Vec<String>,
 }
 
 /// The filters `estimate` can run.
@@ -66,6 +74,10 @@ pub enum FilterKind {
     /// The optimal linear filter on the lifted system (SPEC §5): O((N·n)³) per step, a
     /// yardstick; ignores --solver, --second-moment and --interconnect-from.
     Centralized,
+    /// The joint band-k filter (SPEC §9): the lifted covariance on a band of width --band,
+    /// honest covariances and near-optimal accuracy at a cost linear in N; ignores --solver
+    /// and --interconnect-from.
+    Joint,
 }
 
 #[derive(Debug, clap::Args)]
@@ -93,7 +105,8 @@ pub struct EstimateArgs {
     /// Step-1 solver [default: banded; transfer with --paper].
     #[arg(long, value_enum)]
     pub solver: Option<SolverKind>,
-    /// Second moment S = E[x xᵀ] in the Nahi filter [default: local; paper with --paper].
+    /// Second moment S = E[x xᵀ] in the Nahi filter [default: local; paper with --paper;
+    /// band for --filter joint].
     #[arg(long, value_enum)]
     pub second_moment: Option<SecondMoment>,
     /// Estimate fed to step 1 [default: filtered; predicted with --paper].
@@ -116,6 +129,16 @@ pub struct EstimateArgs {
     /// Largest lifted state size N·n the centralized filter accepts.
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
+    /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: 2].
+    #[arg(long, value_name = "K")]
+    pub band: Option<usize>,
+    /// Joint filter: relative size below which blocks of A_eff are dropped [default: 1e-9].
+    #[arg(long, value_name = "TOL")]
+    pub band_tol: Option<f64>,
+    /// Joint filter: diagonal loading ε of the prior band, P_ii += ε tr(P_ii)/n I
+    /// [default: 1e-9 when every Q is zero, else 0].
+    #[arg(long, value_name = "EPS")]
+    pub loading: Option<f64>,
 }
 
 #[derive(Debug, clap::Args)]

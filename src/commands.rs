@@ -12,12 +12,16 @@ use crate::cli::FilterKind;
 use crate::cli::{Command, EstimateArgs, EvaluateArgs, SimulateArgs};
 use crate::config::ConfigSource;
 use crate::error::Error;
-use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, TwoStepOptions, two_step};
+use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
+use crate::filter::{
+    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
+    TwoStepOptions, two_step,
+};
 use crate::inputs::{InputStream, open_csv};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimatesWriter, Format};
 use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
-use crate::lifted::spectral_radius;
+use crate::lifted::{a_eff_band, spectral_radius};
 use crate::model::{MATRIX_KEYS, Model};
 use crate::simulate::simulate;
 
@@ -109,6 +113,14 @@ fn check(path: &Path) -> Result<()> {
             .map_or(model.steps, |n| (n.first - 1).min(model.steps));
         let solver = ChainSolver::new(&model, w.first)?;
         let rho = spectral_radius(&model, w.first, CHECK_POWER_STEPS)?;
+        let b = a_eff_band(&model, w.first, &solver, DEFAULT_BAND_TOL).half_width();
+        let k = DEFAULT_BAND.min(model.subsystems - 1);
+        let joint_line = format!(
+            "t = {}..{}: A_eff band half-width b = {b} (tol {DEFAULT_BAND_TOL:e}); joint filter (--band {k}): about {:.1} kflop per subsystem-step",
+            w.first,
+            last,
+            flops_per_subsystem_step(d.n, k, b, model.subsystems, true) / 1e3,
+        );
         report.push(format!(
             "t = {}..{}: interconnection condition estimate {:.3e} (1-norm), spectral radius of A_eff {:.6} ({})",
             w.first,
@@ -121,6 +133,7 @@ fn check(path: &Path) -> Result<()> {
                 "power-iteration estimate"
             }
         ));
+        report.push(joint_line);
         if rho.value >= 1.0 {
             warnings.push(format!(
                 "t = {}..{last}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (SPEC §3)",
@@ -317,6 +330,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     opts.second_moment = args.second_moment.unwrap_or(opts.second_moment);
     opts.interconnect_from = args.interconnect_from.unwrap_or(opts.interconnect_from);
     opts.dropouts = args.dropouts;
+    let joint = joint_options(args)?;
 
     let inputs_file = args.inputs.clone().or_else(|| {
         run_dir
@@ -345,9 +359,9 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;
 
-    if model.q_is_zero() && model.is_coupled() {
+    if args.filter == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
         warn(
-            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (SPEC §3)",
+            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (SPEC §3); --filter joint keeps it honest (SPEC §9)",
         );
     }
     if opts.dropouts == Dropouts::Unknown && big_n * n <= ESTIMATE_STABILITY_CHECK_MAX {
@@ -373,21 +387,28 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
             "dropouts": opts.dropouts,
             "paper": args.paper,
             "output": if args.predicted { "predicted" } else { "filtered" },
+            "joint": joint.map(|j| serde_json::json!({
+                "band": j.band.min(big_n - 1),
+                "band_tol": j.band_tol,
+                "loading": j.loading_for(&model),
+                "second_moment": j.second_moment,
+            })),
         },
         "subsystems": big_n,
         "n": n,
     });
-    let mut writer = EstimatesWriter::new(output, format, n, metadata)?;
-    let out_name = args.out.display().to_string();
-
-    let mut filter: Box<dyn ChainFilter> = match args.filter {
-        FilterKind::Distributed => two_step(&model, opts)?,
-        FilterKind::Centralized => Box::new(CentralizedFilter::new(
+    let mut filter: Box<dyn ChainFilter> = match (args.filter, joint) {
+        (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(&model, j)?),
+        (FilterKind::Centralized, _) => Box::new(CentralizedFilter::new(
             &model,
             opts.dropouts == Dropouts::Known,
             args.max_lifted,
         )?),
+        _ => two_step(&model, opts)?,
     };
+    let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
+    let mut writer = EstimatesWriter::new(output, format, n, cross, metadata)?;
+    let out_name = args.out.display().to_string();
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * d.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
@@ -411,6 +432,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         } else {
             filter.filtered()
         };
+        let band = filter.covariance_band(args.predicted);
         for i in 0..big_n {
             writer
                 .row(
@@ -418,6 +440,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
                     i + 1,
                     &x_hat[i * n..(i + 1) * n],
                     &p_hat[i * n * n..(i + 1) * n * n],
+                    |d| band.and_then(|(b, _)| (i + d < big_n).then(|| b.block(i, d))),
                 )
                 .map_err(|e| Error::io(&out_name, e))?;
         }
@@ -468,6 +491,47 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     Ok(())
 }
 
+/// The joint filter's options from the command line (`None` for the other filters, which
+/// reject the joint filter's options: SPEC §7).
+fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
+    if args.filter != FilterKind::Joint {
+        let only_joint = [
+            (args.band.is_some(), "--band"),
+            (args.band_tol.is_some(), "--band-tol"),
+            (args.loading.is_some(), "--loading"),
+            (
+                args.second_moment == Some(SecondMoment::Band),
+                "--second-moment band",
+            ),
+        ];
+        if let Some((_, name)) = only_joint.iter().find(|(given, _)| *given) {
+            return Err(Error::Usage(format!(
+                "{name} belongs to the joint filter; add --filter joint"
+            ))
+            .into());
+        }
+        return Ok(None);
+    }
+    let second_moment = match args.second_moment {
+        Some(SecondMoment::Paper) => {
+            return Err(Error::Usage(
+                "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
+            )
+            .into());
+        }
+        Some(s) => s,
+        None => SecondMoment::Band,
+    };
+    let defaults = JointOptions::default();
+    Ok(Some(JointOptions {
+        band: args.band.unwrap_or(defaults.band),
+        band_tol: args.band_tol.unwrap_or(defaults.band_tol),
+        loading: args.loading,
+        second_moment,
+        dropouts: args.dropouts,
+    }))
+}
+
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
 fn report_accuracy(r: &AccuracyReport) {
     eprintln!("accuracy: {}", r.summary());
@@ -494,6 +558,8 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
         seed: args.seed.unwrap_or(model.seed),
         burn_in: args.burn_in,
         max_lifted: args.max_lifted,
+        band: args.band,
+        filters: args.filters.clone(),
     };
     let bar = if std::io::stderr().is_terminal() {
         indicatif::ProgressBar::new(args.runs as u64)

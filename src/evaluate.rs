@@ -13,22 +13,27 @@ use serde::Serialize;
 
 use crate::accuracy::{Accuracy, AccuracyReport};
 use crate::error::{Error, Result};
+use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
-    CentralizedFilter, CentralizedSchedule, ChainFilter, Dropouts, ScheduledCentralized,
-    TwoStepOptions, two_step,
+    CentralizedFilter, CentralizedSchedule, ChainFilter, Dropouts, JointFilter, JointOptions,
+    ScheduledCentralized, TwoStepOptions, two_step,
 };
 use crate::inputs::InputStream;
 use crate::model::Model;
 use crate::simulate::simulate;
 
 /// The filters compared, in table order.
-pub const FILTERS: [&str; 5] = [
+pub const FILTERS: [&str; 6] = [
     "distributed",
     "distributed-paper",
+    "joint",
     "centralized",
     "centralized-known",
     "naive",
 ];
+
+/// The filter every RMSE is compared with: the optimal linear estimator.
+const REFERENCE: usize = 3;
 
 /// Settings of an evaluation.
 #[derive(Debug, Clone, Serialize)]
@@ -39,6 +44,10 @@ pub struct EvaluateOptions {
     pub burn_in: usize,
     /// Largest lifted size `N·n` for the centralized filters.
     pub max_lifted: usize,
+    /// The joint filter's `--band K`.
+    pub band: usize,
+    /// The filters to run (names of [`FILTERS`]); empty means all.
+    pub filters: Vec<String>,
 }
 
 /// The figures of one filter over all runs.
@@ -54,6 +63,9 @@ pub struct FilterResult {
     pub rmse_ratio: Option<f64>,
     /// Time spent in this filter, summed over runs (seconds).
     pub wall_time_s: f64,
+    /// The average NEES at each time step `t = 1..T` over runs and subsystems (`null` where
+    /// infinite or where every term fell under the resolution floor, or before the burn-in).
+    pub nees_per_step: Vec<Option<f64>>,
 }
 
 /// The result of an evaluation.
@@ -73,6 +85,7 @@ fn describe(name: &str) -> &'static str {
     match name {
         "distributed" => "two-step filter, default options (banded, local S, filtered)",
         "distributed-paper" => "two-step filter as printed in the paper (--paper)",
+        "joint" => "joint band-k filter (--filter joint): banded lifted covariance, linear in N",
         "centralized" => {
             "centralized Nahi filter on the lifted system: the optimal linear estimator"
         }
@@ -121,16 +134,35 @@ fn realise(model: &Model, seed: u64) -> Result<Realisation> {
 /// runs in full for every run.
 const MAX_SCHEDULE_BYTES: usize = 1 << 30;
 
+/// The covariance passes computed once for all runs (SPEC §5, §9).
+#[derive(Default)]
+struct Schedules<'m> {
+    centralized: Option<CentralizedSchedule<'m>>,
+    joint: Option<JointSchedule<'m>>,
+}
+
+fn joint_options(opts: &EvaluateOptions) -> JointOptions {
+    JointOptions {
+        band: opts.band,
+        ..JointOptions::default()
+    }
+}
+
 fn make_filter<'a>(
     model: &'a Model,
     name: &str,
-    max_lifted: usize,
-    schedule: Option<&'a CentralizedSchedule<'a>>,
+    opts: &EvaluateOptions,
+    schedules: &'a Schedules<'a>,
 ) -> Result<Box<dyn ChainFilter + 'a>> {
+    let max_lifted = opts.max_lifted;
     Ok(match name {
-        "centralized" if schedule.is_some() => {
-            Box::new(ScheduledCentralized::new(schedule.expect("checked")))
-        }
+        "centralized" if schedules.centralized.is_some() => Box::new(ScheduledCentralized::new(
+            schedules.centralized.as_ref().expect("checked"),
+        )),
+        "joint" => match &schedules.joint {
+            Some(s) => Box::new(ScheduledJoint::new(s)?),
+            None => Box::new(JointFilter::new(model, joint_options(opts))?),
+        },
         "distributed" => two_step(model, TwoStepOptions::default())?,
         "distributed-paper" => two_step(model, TwoStepOptions::paper())?,
         "centralized" => Box::new(CentralizedFilter::new(model, false, max_lifted)?),
@@ -146,14 +178,50 @@ fn make_filter<'a>(
     })
 }
 
-/// Per run and filter: the accuracy sums, or the error that stopped the filter, and the time.
-type RunResult = Vec<(Result<Accuracy, String>, f64)>;
+/// The NEES sums of one filter at each time step (see [`Accuracy::nees_totals`]).
+#[derive(Debug, Clone, Default)]
+struct StepNees {
+    sum: Vec<f64>,
+    terms: Vec<u64>,
+    infinite: Vec<u64>,
+}
+
+impl StepNees {
+    fn new(steps: usize) -> Self {
+        Self {
+            sum: vec![0.0; steps],
+            terms: vec![0; steps],
+            infinite: vec![0; steps],
+        }
+    }
+
+    fn merge(&mut self, other: &StepNees) {
+        for t in 0..self.sum.len() {
+            self.sum[t] += other.sum[t];
+            self.terms[t] += other.terms[t];
+            self.infinite[t] += other.infinite[t];
+        }
+    }
+
+    fn averages(&self) -> Vec<Option<f64>> {
+        (0..self.sum.len())
+            .map(|t| {
+                (self.infinite[t] == 0 && self.terms[t] > 0)
+                    .then(|| self.sum[t] / self.terms[t] as f64)
+            })
+            .collect()
+    }
+}
+
+/// Per run and filter: the accuracy sums (overall and per step), or the error that stopped
+/// the filter, and the time.
+type RunResult = Vec<(Result<(Accuracy, StepNees), String>, f64)>;
 
 fn run_filters(
     model: &Model,
     opts: &EvaluateOptions,
     active: &[bool],
-    schedule: Option<&CentralizedSchedule>,
+    schedules: &Schedules,
     r: usize,
 ) -> Result<RunResult> {
     let data = realise(model, opts.seed.wrapping_add(r as u64))?;
@@ -165,9 +233,10 @@ fn run_filters(
             continue;
         }
         let start = Instant::now();
-        let result = (|| -> Result<Accuracy> {
-            let mut f = make_filter(model, name, opts.max_lifted, schedule)?;
+        let result = (|| -> Result<(Accuracy, StepNees)> {
+            let mut f = make_filter(model, name, opts, schedules)?;
             let mut acc = Accuracy::new(n);
+            let mut per_step = StepNees::new(model.steps);
             let ys = if *name == "centralized-known" {
                 &data.y_known
             } else {
@@ -177,6 +246,7 @@ fn run_filters(
                 f.step(&ys[t], &data.u[t])?;
                 if t + 1 > opts.burn_in {
                     let (x_hat, p_hat) = f.filtered();
+                    let (sum, terms, infinite) = acc.nees_totals();
                     for i in 0..big_n {
                         acc.add(
                             &data.x[t][i * n..(i + 1) * n],
@@ -184,9 +254,13 @@ fn run_filters(
                             &p_hat[i * n * n..(i + 1) * n * n],
                         );
                     }
+                    let (sum_now, terms_now, infinite_now) = acc.nees_totals();
+                    per_step.sum[t] = sum_now - sum;
+                    per_step.terms[t] = terms_now - terms;
+                    per_step.infinite[t] = infinite_now - infinite;
                 }
             }
-            Ok(acc)
+            Ok((acc, per_step))
         })();
         out.push((
             result.map_err(|e| format!("{e}")),
@@ -207,33 +281,57 @@ pub fn evaluate(
     if opts.runs == 0 {
         return Err(Error::Usage("--runs must be at least 1".into()));
     }
+    if let Some(bad) = opts.filters.iter().find(|f| !FILTERS.contains(&f.as_str())) {
+        return Err(Error::Usage(format!(
+            "--filters: unknown filter `{bad}`; expected some of {}",
+            FILTERS.join(", ")
+        )));
+    }
+    let selected: Vec<bool> = FILTERS
+        .iter()
+        .map(|f| opts.filters.is_empty() || opts.filters.iter().any(|g| g == f))
+        .collect();
     // A filter that cannot be built for this model (too large, G22 singular) is skipped.
+    let none = Schedules::default();
     let mut skipped: Vec<Option<String>> = FILTERS
         .iter()
-        .map(|name| {
-            make_filter(model, name, opts.max_lifted, None)
+        .zip(&selected)
+        .map(|(name, &chosen)| {
+            if !chosen {
+                return Some("not selected".to_string());
+            }
+            make_filter(model, name, &opts, &none)
                 .err()
                 .map(|e| format!("{e}"))
         })
         .collect();
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();
-    // The unknown-dropout centralized covariance pass does not depend on the data (the
-    // inputs are the same in every run): compute it once.
-    let schedule =
-        if active[2] && CentralizedSchedule::bytes(model, model.steps) <= MAX_SCHEDULE_BYTES {
-            let mut inputs = InputStream::open(model, None)?;
-            let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; model.steps];
-            for (t, ut) in u.iter_mut().enumerate() {
-                inputs.next(t + 1, ut)?;
-            }
-            Some(CentralizedSchedule::new(model, &u, opts.max_lifted)?)
-        } else {
-            None
-        };
+    // The unknown-dropout covariance passes of the centralized and the joint filter do not
+    // depend on the data (the inputs are the same in every run): compute them once.
+    let mut inputs = InputStream::open(model, None)?;
+    let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; model.steps];
+    for (t, ut) in u.iter_mut().enumerate() {
+        inputs.next(t + 1, ut)?;
+    }
+    let central = FILTERS
+        .iter()
+        .position(|&f| f == "centralized")
+        .expect("listed");
+    let joint = FILTERS.iter().position(|&f| f == "joint").expect("listed");
+    let schedules = Schedules {
+        centralized: (active[central]
+            && CentralizedSchedule::bytes(model, model.steps) <= MAX_SCHEDULE_BYTES)
+            .then(|| CentralizedSchedule::new(model, &u, opts.max_lifted))
+            .transpose()?,
+        joint: (active[joint]
+            && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
+            .then(|| JointSchedule::new(model, joint_options(&opts), &u))
+            .transpose()?,
+    };
     let results: Vec<RunResult> = (0..opts.runs)
         .into_par_iter()
         .map(|r| {
-            let res = run_filters(model, &opts, &active, schedule.as_ref(), r);
+            let res = run_filters(model, &opts, &active, &schedules, r);
             tick();
             res
         })
@@ -241,12 +339,18 @@ pub fn evaluate(
 
     let n = model.dims.n;
     let mut sums: Vec<Accuracy> = (0..FILTERS.len()).map(|_| Accuracy::new(n)).collect();
+    let mut step_sums: Vec<StepNees> = (0..FILTERS.len())
+        .map(|_| StepNees::new(model.steps))
+        .collect();
     let mut times = vec![0.0; FILTERS.len()];
     for run in &results {
         for (k, (res, time)) in run.iter().enumerate() {
             times[k] += time;
             match res {
-                Ok(acc) => sums[k].merge(acc),
+                Ok((acc, per_step)) => {
+                    sums[k].merge(acc);
+                    step_sums[k].merge(per_step);
+                }
                 Err(e) if active[k] && skipped[k].is_none() => {
                     skipped[k] = Some(format!("failed: {e}"));
                 }
@@ -257,10 +361,11 @@ pub fn evaluate(
     let reports: Vec<Option<AccuracyReport>> = (0..FILTERS.len())
         .map(|k| skipped[k].is_none().then(|| sums[k].report()))
         .collect();
-    let reference = reports[2].as_ref().map(|r| r.rmse_overall);
+    let reference = reports[REFERENCE].as_ref().map(|r| r.rmse_overall);
     let filters = FILTERS
         .iter()
         .enumerate()
+        .filter(|&(k, _)| selected[k])
         .map(|(k, name)| FilterResult {
             name,
             description: describe(name),
@@ -271,6 +376,11 @@ pub fn evaluate(
             },
             accuracy: reports[k].clone(),
             wall_time_s: times[k],
+            nees_per_step: if skipped[k].is_none() {
+                step_sums[k].averages()
+            } else {
+                Vec::new()
+            },
         })
         .collect();
     Ok(Evaluation {

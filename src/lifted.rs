@@ -4,6 +4,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::band::GenBand;
 use crate::error::Result;
 use crate::interconnect::ChainSolver;
 use crate::linalg::mat_vec_add;
@@ -13,12 +14,19 @@ use crate::model::Model;
 /// above it, it estimates by power iteration.
 pub const EXACT_SPECTRUM_MAX: usize = 1200;
 
-/// Scratch for [`apply_a_eff`].
+/// Scratch for [`apply_a_eff`] and [`propagate_mean`].
 #[derive(Debug, Default, Clone)]
 pub struct LiftedWorkspace {
     z: Vec<f64>,
     v: Vec<f64>,
     rhs: Vec<f64>,
+}
+
+impl LiftedWorkspace {
+    /// The interconnection signals `v` (`N · (n⁺+n⁻)` values) of the last product.
+    pub fn interconnection(&self) -> &[f64] {
+        &self.v
+    }
 }
 
 /// `out = A_eff(t) x`: `z(i) = D x(i)`, `v` from the chain solve, `out(i) = A x(i) + B v(i)`.
@@ -31,14 +39,34 @@ pub fn apply_a_eff(
     out: &mut [f64],
     ws: &mut LiftedWorkspace,
 ) {
-    let (n, s, big_n) = (model.dims.n, model.dims.s(), model.subsystems);
+    propagate_mean(model, t, solver, x, None, out, ws);
+}
+
+/// `out = A_eff(t) x + U_eff(t) u` without forming either matrix (SPEC §5, §9 predict step
+/// 1): `z(i) = D x(i) + H u(i)`, `v` from the chain solve of SPEC §2, and
+/// `out(i) = A x(i) + B v(i) + C u(i)`. `u = None` means no input. The `v` used is left in
+/// [`LiftedWorkspace::interconnection`]. `solver` must be prepared for `t`.
+pub fn propagate_mean(
+    model: &Model,
+    t: usize,
+    solver: &ChainSolver,
+    x: &[f64],
+    u: Option<&[f64]>,
+    out: &mut [f64],
+    ws: &mut LiftedWorkspace,
+) {
+    let (n, m, s, big_n) = (model.dims.n, model.dims.m, model.dims.s(), model.subsystems);
     ws.z.clear();
     ws.z.resize(big_n * s, 0.0);
     ws.v.resize(big_n * s, 0.0);
     let window = model.window(t);
     for i in 0..big_n {
         let p = model.param_set(window.ids[i]);
-        mat_vec_add(&mut ws.z[i * s..(i + 1) * s], &p.D, &x[i * n..(i + 1) * n]);
+        let zi = &mut ws.z[i * s..(i + 1) * s];
+        mat_vec_add(zi, &p.D, &x[i * n..(i + 1) * n]);
+        if let Some(u) = u {
+            mat_vec_add(zi, &p.H, &u[i * m..(i + 1) * m]);
+        }
     }
     solver.solve(&ws.z, &mut ws.v, &mut ws.rhs);
     out.iter_mut().for_each(|o| *o = 0.0);
@@ -47,6 +75,9 @@ pub fn apply_a_eff(
         let oi = &mut out[i * n..(i + 1) * n];
         mat_vec_add(oi, &p.A, &x[i * n..(i + 1) * n]);
         mat_vec_add(oi, &p.B, &ws.v[i * s..(i + 1) * s]);
+        if let Some(u) = u {
+            mat_vec_add(oi, &p.C, &u[i * m..(i + 1) * m]);
+        }
     }
 }
 
@@ -64,6 +95,75 @@ pub fn a_eff_dense(model: &Model, t: usize, solver: &ChainSolver) -> DMatrix<f64
         e[c] = 0.0;
     }
     a
+}
+
+/// First trial half-width of [`a_eff_band`] (SPEC §9 predict step 2).
+const FIRST_TRIAL_HALF_WIDTH: usize = 16;
+
+/// The block band of `A_eff(t)` by column compression (Curtis–Powell–Reid; SPEC §9 predict
+/// step 2). For a trial half-width `b_m` and period `p = 2 b_m + 1`, each of the `p·n` probes
+/// `Z^{(r,c)}` has block `j` equal to `e_c` when `j ≡ r (mod p)`, so that
+/// `A_eff(i, j)[:, c] = (A_eff Z^{(j mod p, c)})_i` for `|i − j| ≤ b_m`: only one such `j`
+/// lies within `b_m` of `i`. With `ν_d = max_i max |A_eff(i, i+d)|` the kept half-width is
+/// `b = max{|d| : ν_d > tol · max_d ν_d}`; when `b` reaches `b_m < N − 1` the blocks may not
+/// have decayed yet and `b_m` is doubled. With `tol = 0` the result is the exact `A_eff`
+/// whenever its band ends before `N − 1`, and always at `b_m = N − 1` (one probe per column).
+/// `solver` must be prepared for `t`.
+pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> GenBand {
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let mut ws = LiftedWorkspace::default();
+    let (mut probe, mut col) = (vec![0.0; big_n * n], vec![0.0; big_n * n]);
+    let mut trial = FIRST_TRIAL_HALF_WIDTH.min(big_n - 1);
+    loop {
+        let period = 2 * trial + 1;
+        let mut band = GenBand::zeros(big_n, n, trial);
+        for r in 0..period.min(big_n) {
+            for c in 0..n {
+                probe.fill(0.0);
+                for j in (r..big_n).step_by(period) {
+                    probe[j * n + c] = 1.0;
+                }
+                apply_a_eff(model, t, solver, &probe, &mut col, &mut ws);
+                for i in 0..big_n {
+                    // The one column block j ≡ r (mod period) with |i − j| ≤ trial.
+                    let lo = i.saturating_sub(trial);
+                    let j = lo + (r + period - lo % period) % period;
+                    if j < big_n && j <= i + trial {
+                        band.block_mut(i, j)[c * n..(c + 1) * n]
+                            .copy_from_slice(&col[i * n..(i + 1) * n]);
+                    }
+                }
+            }
+        }
+        // ν_d for d = −trial..=trial, at index d + trial.
+        let mut nu = vec![0.0_f64; 2 * trial + 1];
+        for i in 0..big_n {
+            for j in i.saturating_sub(trial)..=(i + trial).min(big_n - 1) {
+                let d = j + trial - i;
+                let amax = band.block(i, j).iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+                nu[d] = nu[d].max(amax);
+            }
+        }
+        let largest = nu.iter().copied().fold(0.0, f64::max);
+        let kept = (0..=trial)
+            .rev()
+            .find(|&d| nu[trial + d].max(nu[trial - d]) > tol * largest)
+            .unwrap_or(0);
+        if kept == trial && trial < big_n - 1 {
+            trial = (2 * trial).min(big_n - 1);
+            continue;
+        }
+        if kept == trial {
+            return band;
+        }
+        let mut narrow = GenBand::zeros(big_n, n, kept);
+        for i in 0..big_n {
+            for j in i.saturating_sub(kept)..=(i + kept).min(big_n - 1) {
+                narrow.block_mut(i, j).copy_from_slice(band.block(i, j));
+            }
+        }
+        return narrow;
+    }
 }
 
 /// The spectral radius of `A_eff` over a time window.

@@ -53,14 +53,24 @@ fn same_results_with_one_and_two_threads() {
         [
             "distributed",
             "distributed-paper",
+            "joint",
             "centralized",
             "centralized-known",
             "naive"
         ]
     );
-    let central = &one["filters"][2];
+    let central = &one["filters"][3];
     assert_eq!(central["rmse_ratio"].as_f64(), Some(1.0));
     assert!(central["accuracy"]["anees"].as_f64().is_some());
+    // Every filter carries its average NEES per time step (T = 150 for paper.toml).
+    for f in one["filters"].as_array().unwrap() {
+        assert_eq!(
+            f["nees_per_step"].as_array().unwrap().len(),
+            150,
+            "{}",
+            f["name"]
+        );
+    }
 }
 
 #[test]

@@ -311,6 +311,8 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         seed: 1,
         burn_in: 0,
         max_lifted: 1000,
+        band: 2,
+        filters: vec![],
     };
     let ev = evaluate(&model, "platoon", opts, || {}).unwrap();
     let ratio = |name: &str| {

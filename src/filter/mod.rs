@@ -3,15 +3,18 @@
 //! ([`two_step`]).
 
 pub mod centralized;
+pub mod joint;
 pub mod kernel;
 pub mod nahi;
 pub mod two_step;
 
 use serde::Serialize;
 
+use crate::band::SymBand;
 use crate::interconnect::SolverKind;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
+pub use joint::{JointFilter, JointOptions};
 pub use two_step::{TwoStepFilter, two_step};
 
 use crate::error::Result;
@@ -29,6 +32,11 @@ pub trait ChainFilter {
     fn solver_error_estimate(&self) -> f64 {
         0.0
     }
+    /// For filters that keep a covariance band (the joint filter, SPEC §9): the band of the
+    /// last output's covariance (`P(t|t)`, or `T(t+1)` with `predicted`) and its width `k`.
+    fn covariance_band(&self, _predicted: bool) -> Option<(&SymBand, usize)> {
+        None
+    }
 }
 
 /// What the filter uses for the raw second moment `S = E[x xᵀ]` in the Nahi innovation
@@ -43,6 +51,8 @@ pub enum SecondMoment {
     /// The exact diagonal blocks of E[X Xᵀ] of the lifted system: O((N·n)²) memory, for
     /// reference on small chains.
     Lifted,
+    /// The joint filter's own moment band (SPEC §9; its default, joint filter only).
+    Band,
 }
 
 /// Which estimate of `x(t, ·)` feeds step 1 (SPEC §3).

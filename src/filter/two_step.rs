@@ -213,7 +213,7 @@ fn predict_range<K: LocalKernel>(
                 mat_vec_add(mean, &prm.C, ui);
             }
             SecondMoment::Paper => kernel.propagate(set, false, &sc.cov, cov),
-            SecondMoment::Lifted => {}
+            SecondMoment::Lifted | SecondMoment::Band => {}
         }
     }
 }
@@ -253,6 +253,11 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
     pub fn with_kernel(model: &'m Model, opts: TwoStepOptions) -> Result<Self> {
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
+        if opts.second_moment == SecondMoment::Band {
+            return Err(Error::Usage(
+                "--second-moment band belongs to the joint filter (--filter joint); the distributed filter takes local, paper or lifted".into(),
+            ));
+        }
         let m0 = model.initial_mean.as_slice();
         let p0 = model.initial_cov.as_slice();
         let x_pred: Vec<f64> = m0.iter().copied().cycle().take(big_n * n).collect();

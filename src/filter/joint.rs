@@ -1,0 +1,812 @@
+//! The joint band-k filter of SPEC §9: the full lifted mean and the lifted covariance on the
+//! block band `|i − j| ≤ k`, standing for the rest by its maximum-entropy (Gauss–Markov)
+//! completion. It accounts for the error in the interconnection signals that the two-step
+//! filter treats as exact, so its covariance stays honest (also with `Q = 0`), and every step
+//! is linear in `N`. With `k = N − 1` it is the centralized filter of SPEC §5.
+//!
+//! One time step, in information form on the band (SPEC §9 update steps 1–7, predict 1–5):
+//!
+//! ```text
+//! Λ⁻   = Σ_cliques pad(P⁻_C⁻¹) − Σ_separators pad(P⁻_S⁻¹)      completion precision
+//! Φ_i  = H_iᵀ R_i⁻¹ H_i,  r_i = H_iᵀ R_i⁻¹ ỹ_i,   H_i = p_i J,  R_i = M + p_i(1−p_i) J S_ii Jᵀ
+//! Λ⁺   = Λ⁻ + blkdiag(Φ_i) = L Lᵀ,   X̂⁺ = X̂⁻ + (Λ⁺)⁻¹ r
+//! P̃⁺   = band of (Λ⁺)⁻¹ to width w = min(k + 2b, N − 1)         selected inversion
+//! X̂⁻(t+1) = A_eff X̂⁺ + U_eff u                                  by the chain solve
+//! P⁻(t+1) = band_k(A_eff P̃⁺ A_effᵀ) + blkdiag(Q)                 b = half-width of A_eff
+//! ```
+
+use nalgebra::{Cholesky, DMatrix, DVector};
+use serde::Serialize;
+
+use crate::band::{
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
+    completion_precision, sandwich,
+};
+use crate::error::{Error, Result};
+use crate::filter::{ChainFilter, Dropouts, SecondMoment, nahi};
+use crate::interconnect::ChainSolver;
+use crate::lifted::{LiftedMoments, LiftedSystem, LiftedWorkspace, a_eff_band, propagate_mean};
+use crate::linalg::mat_vec_add;
+use crate::model::{Model, Params};
+
+/// Default `--band K`.
+pub const DEFAULT_BAND: usize = 2;
+/// Default `--band-tol`: relative size below which blocks of `A_eff` are dropped.
+pub const DEFAULT_BAND_TOL: f64 = 1e-9;
+/// Default `--loading` when every `Q` is zero (else 0): SPEC §9 "Numerics".
+pub const DEFAULT_LOADING_Q_ZERO: f64 = 1e-9;
+
+/// Options of the joint filter.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct JointOptions {
+    /// `K`: the covariance is kept on the blocks `|i − j| ≤ min(K, N − 1)`.
+    pub band: usize,
+    /// Relative tolerance of the `A_eff` band (SPEC §9 predict step 2).
+    pub band_tol: f64,
+    /// Diagonal loading `ε`; `None` means 1e−9 when every `Q` is zero, else 0.
+    pub loading: Option<f64>,
+    /// `band` (default), `lifted` or `local`.
+    pub second_moment: SecondMoment,
+    pub dropouts: Dropouts,
+}
+
+impl Default for JointOptions {
+    fn default() -> Self {
+        Self {
+            band: DEFAULT_BAND,
+            band_tol: DEFAULT_BAND_TOL,
+            loading: None,
+            second_moment: SecondMoment::Band,
+            dropouts: Dropouts::Unknown,
+        }
+    }
+}
+
+impl JointOptions {
+    /// The loading `ε` in force for `model`.
+    pub fn loading_for(&self, model: &Model) -> f64 {
+        self.loading.unwrap_or(if model.q_is_zero() {
+            DEFAULT_LOADING_Q_ZERO
+        } else {
+            0.0
+        })
+    }
+}
+
+/// The leading flop count of one subsystem-step of the joint filter (SPEC §9 "Cost"): predict
+/// `2n³[(2b+1)(2k+2b+1) + (k+1)(2b+1)]`, selected inversion `2wkn³`, cliques `(k+1)³n³`,
+/// Cholesky `k²n³/2`, with `w = min(k + 2b, N − 1)`; twice that with the `band` moment.
+pub fn flops_per_subsystem_step(
+    n: usize,
+    k: usize,
+    b: usize,
+    subsystems: usize,
+    band_moment: bool,
+) -> f64 {
+    let (n3, k, b) = ((n * n * n) as f64, k as f64, b as f64);
+    let w = (k + 2.0 * b).min(subsystems.saturating_sub(1) as f64);
+    let predict =
+        2.0 * n3 * ((2.0 * b + 1.0) * (2.0 * k + 2.0 * b + 1.0) + (k + 1.0) * (2.0 * b + 1.0));
+    let once = predict + 2.0 * w * k * n3 + (k + 1.0).powi(3) * n3 + k * k * n3 / 2.0;
+    if band_moment { 2.0 * once } else { once }
+}
+
+/// The band of `A_eff` for the parameters in force, rebuilt only when `A`, `B`, `D` or `G` of
+/// some subsystem change (SPEC §9 predict step 2).
+pub struct AEffBand {
+    band: GenBand,
+    built_from: Vec<f64>,
+    window: usize,
+    tol: f64,
+}
+
+impl AEffBand {
+    /// The band of `A_eff(t)`; `solver` must be prepared for `t`.
+    pub fn new(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Self {
+        Self {
+            band: a_eff_band(model, t, solver, tol),
+            built_from: Self::coupling_params(model, t),
+            window: model.window_index(t),
+            tol,
+        }
+    }
+
+    fn coupling_params(model: &Model, t: usize) -> Vec<f64> {
+        let w = model.window(t);
+        w.ids
+            .iter()
+            .flat_map(|&id| {
+                let p = model.param_set(id);
+                [&p.A, &p.B, &p.D, &p.G]
+                    .into_iter()
+                    .flat_map(|m| m.as_slice().iter().copied())
+            })
+            .collect()
+    }
+
+    /// Makes the band valid for `t`; returns true when it was rebuilt.
+    pub fn prepare(&mut self, model: &Model, t: usize, solver: &ChainSolver) -> bool {
+        let window = model.window_index(t);
+        if window == self.window {
+            return false;
+        }
+        self.window = window;
+        let now = Self::coupling_params(model, t);
+        if now == self.built_from {
+            return false;
+        }
+        self.band = a_eff_band(model, t, solver, self.tol);
+        self.built_from = now;
+        true
+    }
+
+    pub fn band(&self) -> &GenBand {
+        &self.band
+    }
+
+    /// The half-width `b`.
+    pub fn half_width(&self) -> usize {
+        self.band.half_width()
+    }
+}
+
+/// What the filter uses for the raw second moments `S_ii` (SPEC §9 update step 1).
+enum Moments {
+    /// Known-dropout mode: not needed.
+    None,
+    /// The moment mean and the band of the moment covariance, with its completion to width `w`.
+    Band {
+        mean: Vec<f64>,
+        cov: SymBand,
+        completed: SymBand,
+        /// The factor of the moment's completion precision (the filter's own factor is kept
+        /// for [`JointSchedule`]).
+        chol: Box<BandCholesky>,
+    },
+    /// The exact dense lifted moments (SPEC §5), for tests on small chains.
+    Lifted {
+        sys: Box<LiftedSystem>,
+        moments: Box<LiftedMoments>,
+    },
+    /// The two-step filter's per-subsystem moments with the filter's own `v̂` (SPEC §3).
+    Local {
+        mean: Vec<f64>,
+        cov: Vec<f64>,
+        scratch: Vec<f64>,
+        ws: Box<nahi::Workspace>,
+    },
+}
+
+/// Dense scratch of one subsystem's measurement information (update step 2).
+struct InfoWorkspace {
+    h: DMatrix<f64>,
+    h_tr: DMatrix<f64>,
+    js: DMatrix<f64>,
+    reff: DMatrix<f64>,
+    w: DMatrix<f64>,
+    s: DMatrix<f64>,
+    innov: DVector<f64>,
+}
+
+impl InfoWorkspace {
+    fn new(n: usize, q: usize) -> Self {
+        Self {
+            h: DMatrix::zeros(q, n),
+            h_tr: DMatrix::zeros(n, q),
+            js: DMatrix::zeros(q, n),
+            reff: DMatrix::zeros(q, q),
+            w: DMatrix::zeros(q, n),
+            s: DMatrix::zeros(n, n),
+            innov: DVector::zeros(q),
+        }
+    }
+
+    /// Adds `Φ = Hᵀ R⁻¹ H` to `phi` (`n × n`) and writes `r = Hᵀ R⁻¹ ỹ`, with `H = p J`,
+    /// `R = M + p(1−p) J S Jᵀ` (`S` in `self.s`, unknown dropouts) and `ỹ = y − R u − H x̂⁻`.
+    /// In the known-dropout mode (`p = 1`) a NaN element of `y` removes its row. Returns false
+    /// when `R` is not positive definite.
+    #[allow(clippy::too_many_arguments)]
+    fn add(
+        &mut self,
+        prm: &Params,
+        p: f64,
+        known: bool,
+        y: &[f64],
+        u: &[f64],
+        x: &[f64],
+        phi: &mut [f64],
+        r: &mut [f64],
+    ) -> bool {
+        let (q, n) = self.h.shape();
+        self.h.copy_from(&prm.J);
+        self.h.scale_mut(p);
+        self.reff.copy_from(&prm.M);
+        if !known && p * (1.0 - p) != 0.0 {
+            self.h_tr.tr_copy_from(&prm.J);
+            self.js.gemm_tr(1.0, &self.h_tr, &self.s, 0.0);
+            self.reff.gemm(p * (1.0 - p), &self.js, &self.h_tr, 1.0);
+        }
+        for k in 0..q {
+            let mut acc = y[k];
+            for c in 0..u.len() {
+                acc -= prm.R[(k, c)] * u[c];
+            }
+            for c in 0..n {
+                acc -= self.h[(k, c)] * x[c];
+            }
+            self.innov[k] = acc;
+        }
+        if known {
+            for k in 0..q {
+                if y[k].is_nan() {
+                    self.h.row_mut(k).fill(0.0);
+                    self.reff.row_mut(k).fill(0.0);
+                    self.reff.column_mut(k).fill(0.0);
+                    self.reff[(k, k)] = 1.0;
+                    self.innov[k] = 0.0;
+                }
+            }
+        }
+        // W = R⁻¹ H by a Cholesky solve (allocation-free: the factor reuses `reff`).
+        self.w.copy_from(&self.h);
+        let reff = std::mem::replace(&mut self.reff, DMatrix::zeros(0, 0));
+        let Some(chol) = Cholesky::new(reff) else {
+            self.reff = DMatrix::zeros(q, q);
+            return false;
+        };
+        chol.solve_mut(&mut self.w);
+        self.reff = chol.unpack();
+        for c in 0..n {
+            for rr in 0..n {
+                let mut acc = 0.0;
+                for k in 0..q {
+                    acc += self.h[(k, rr)] * self.w[(k, c)];
+                }
+                phi[c * n + rr] += acc;
+            }
+            let mut acc = 0.0;
+            for k in 0..q {
+                acc += self.w[(k, c)] * self.innov[k];
+            }
+            r[c] = acc;
+        }
+        true
+    }
+}
+
+/// `P_ii += ε (tr P_ii / n) I` on every diagonal block (SPEC §9 "Numerics").
+fn load_diagonal(p: &mut SymBand, eps: f64) {
+    if eps == 0.0 {
+        return;
+    }
+    let n = p.bs();
+    for i in 0..p.nb() {
+        let b = p.block_mut(i, 0);
+        let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
+        for c in 0..n {
+            b[c * n + c] += eps * trace / n as f64;
+        }
+    }
+}
+
+/// Copies the diagonal blocks of `p` into `out` (`N · n²`).
+fn diagonal_blocks(p: &SymBand, out: &mut [f64]) {
+    let nn = p.bs() * p.bs();
+    for i in 0..p.nb() {
+        out[i * nn..(i + 1) * nn].copy_from_slice(p.block(i, 0));
+    }
+}
+
+/// `P = blkdiag(P0)` on a band of width `k`.
+fn initial_band(model: &Model, k: usize) -> SymBand {
+    let n = model.dims.n;
+    let mut p = SymBand::zeros(model.subsystems, n, k);
+    for i in 0..model.subsystems {
+        p.block_mut(i, 0)
+            .copy_from_slice(model.initial_cov.as_slice());
+    }
+    p
+}
+
+/// The joint band-k filter's state between time steps.
+pub struct JointFilter<'m> {
+    model: &'m Model,
+    known: bool,
+    k: usize,
+    loading: f64,
+    /// The next time step to process.
+    t: usize,
+    solver: ChainSolver,
+    a_eff: AEffBand,
+    /// `X̂⁻` and the band `P⁻` (width `k`) before a step; of `t + 1` after it.
+    x_pred: Vec<f64>,
+    p_pred: SymBand,
+    /// `X̂⁺` and `P̃⁺` (width `w`) of the last step.
+    x_filt: Vec<f64>,
+    p_filt: SymBand,
+    moments: Moments,
+    lambda: SymBand,
+    chol: BandCholesky,
+    completion: CompletionWorkspace,
+    sandwich: SandwichWorkspace,
+    info: InfoWorkspace,
+    lifted_ws: LiftedWorkspace,
+    r: Vec<f64>,
+    mean_scratch: Vec<f64>,
+    block_filt: Vec<f64>,
+    block_pred: Vec<f64>,
+    /// When recording a [`JointSchedule`]: every subsystem's `R_i⁻¹ H_i` of the last step.
+    recorded_gains: Option<Vec<f64>>,
+}
+
+impl<'m> JointFilter<'m> {
+    /// Starts from `X̂⁻(1) = [m0; …; m0]`, `P⁻(1) = blkdiag(P0)` (and the same moments).
+    pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
+        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
+        let known = opts.dropouts == Dropouts::Known;
+        if !opts.band_tol.is_finite() || opts.band_tol < 0.0 {
+            return Err(Error::Usage(format!(
+                "--band-tol {}: expected a finite number ≥ 0",
+                opts.band_tol
+            )));
+        }
+        let loading = opts.loading_for(model);
+        if !loading.is_finite() || loading < 0.0 {
+            return Err(Error::Usage(format!(
+                "--loading {loading}: expected a finite number ≥ 0"
+            )));
+        }
+        let k = opts.band.min(big_n - 1);
+        let solver = ChainSolver::new(model, 1)?;
+        let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
+        let w = (k + 2 * a_eff.half_width()).min(big_n - 1);
+        let mean: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
+        let moments = match (known, opts.second_moment) {
+            (true, _) => Moments::None,
+            (false, SecondMoment::Band) => Moments::Band {
+                mean: mean.clone(),
+                cov: initial_band(model, k),
+                completed: SymBand::zeros(big_n, n, w),
+                chol: Box::new(BandCholesky::new(big_n, n, k)),
+            },
+            (false, SecondMoment::Lifted) => Moments::Lifted {
+                sys: Box::new(LiftedSystem::new(model, 1)?),
+                moments: Box::new(LiftedMoments::initial(model)),
+            },
+            (false, SecondMoment::Local) => Moments::Local {
+                mean: mean.clone(),
+                cov: (0..big_n)
+                    .flat_map(|_| model.initial_cov.as_slice().iter().copied())
+                    .collect(),
+                scratch: vec![0.0; n * n],
+                ws: Box::new(nahi::Workspace::new(n, q)),
+            },
+            (false, SecondMoment::Paper) => {
+                return Err(Error::Usage(
+                    "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
+                ));
+            }
+        };
+        let p_pred = initial_band(model, k);
+        let mut block_pred = vec![0.0; big_n * n * n];
+        diagonal_blocks(&p_pred, &mut block_pred);
+        Ok(Self {
+            model,
+            known,
+            k,
+            loading,
+            t: 1,
+            sandwich: SandwichWorkspace::new(big_n, n, a_eff.half_width(), k),
+            solver,
+            a_eff,
+            x_filt: mean.clone(),
+            x_pred: mean,
+            p_filt: SymBand::zeros(big_n, n, w),
+            p_pred,
+            moments,
+            lambda: SymBand::zeros(big_n, n, k),
+            chol: BandCholesky::new(big_n, n, k),
+            completion: CompletionWorkspace::new(big_n, n, k),
+            info: InfoWorkspace::new(n, q),
+            lifted_ws: LiftedWorkspace::default(),
+            r: vec![0.0; big_n * n],
+            mean_scratch: vec![0.0; big_n * n],
+            block_filt: block_pred.clone(),
+            block_pred,
+            recorded_gains: None,
+        })
+    }
+
+    /// The covariance band `k` in use.
+    pub fn band(&self) -> usize {
+        self.k
+    }
+
+    /// The half-width `b` of the current `A_eff` band.
+    pub fn a_eff_half_width(&self) -> usize {
+        self.a_eff.half_width()
+    }
+
+    /// The covariance of the last output on the band: `P(t|t)` (width ≥ `k`) after a step,
+    /// or `T(t+1)` (width `k`) with `predicted`. Block `(i, i+d)` is `P_{i,i+d}`.
+    pub fn covariance_band(&self, predicted: bool) -> &SymBand {
+        if predicted {
+            &self.p_pred
+        } else {
+            &self.p_filt
+        }
+    }
+
+    fn band_error(&self, what: &str, e: BandError) -> Error {
+        band_error_at(self.t, self.loading, self.k, what, e)
+    }
+
+    /// The information of every subsystem's measurement: `Φ_i` added to `lambda`'s diagonal
+    /// blocks and `r_i` into `self.r` (update step 2).
+    fn measurement_information(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
+        let window = model.window(self.t);
+        for i in 0..model.subsystems {
+            let prm = model.param_set(window.ids[i]);
+            let p = if self.known { 1.0 } else { window.p[i] };
+            let s = self.info.s.as_mut_slice();
+            match &self.moments {
+                Moments::None => {}
+                Moments::Band { mean, cov, .. } => {
+                    second_moment(cov.block(i, 0), &mean[i * n..(i + 1) * n], s)
+                }
+                Moments::Local { mean, cov, .. } => second_moment(
+                    &cov[i * n * n..(i + 1) * n * n],
+                    &mean[i * n..(i + 1) * n],
+                    s,
+                ),
+                Moments::Lifted { moments, .. } => moments.second_moment(i, n, &mut self.info.s),
+            }
+            let ok = self.info.add(
+                prm,
+                p,
+                self.known,
+                &y[i * q..(i + 1) * q],
+                &u[i * m..(i + 1) * m],
+                &self.x_pred[i * n..(i + 1) * n],
+                self.lambda.block_mut(i, 0),
+                &mut self.r[i * n..(i + 1) * n],
+            );
+            if !ok {
+                return Err(Error::Numerical {
+                    t: self.t,
+                    i: i + 1,
+                    msg: "joint filter: the measurement covariance M + p(1−p) J S Jᵀ is not positive definite".into(),
+                });
+            }
+            if let Some(gains) = &mut self.recorded_gains {
+                gains[i * q * n..(i + 1) * q * n].copy_from_slice(self.info.w.as_slice());
+            }
+        }
+        Ok(())
+    }
+
+    /// Predict step 5 (`band` moments) and the other moment recursions, from `t` to `t + 1`.
+    fn propagate_moments(&mut self, u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let (n, t) = (model.dims.n, self.t);
+        match &mut self.moments {
+            Moments::None => {}
+            Moments::Band {
+                mean,
+                cov,
+                completed,
+                chol,
+            } => {
+                propagate_mean(
+                    model,
+                    t,
+                    &self.solver,
+                    mean,
+                    Some(u),
+                    &mut self.mean_scratch,
+                    &mut self.lifted_ws,
+                );
+                mean.copy_from_slice(&self.mean_scratch);
+                completion_precision(cov, self.k, &mut self.lambda, &mut self.completion)
+                    .map_err(|e| (e, "moment"))
+                    .and_then(|()| chol.factor(&self.lambda).map_err(|e| (e, "moment")))
+                    .map_err(|(e, what)| band_error_at(t, self.loading, self.k, what, e))?;
+                chol.selected_inverse(completed);
+                sandwich(self.a_eff.band(), completed, cov, &mut self.sandwich);
+                add_process_noise(model, t, cov);
+            }
+            Moments::Lifted { sys, moments } => {
+                sys.prepare(model, t)?;
+                moments.propagate(sys, u);
+            }
+            Moments::Local {
+                mean,
+                cov,
+                scratch,
+                ws,
+            } => {
+                // v̂ of the mean prediction, left in the workspace by `step`.
+                let s = model.dims.s();
+                let m = model.dims.m;
+                let v = self.lifted_ws.interconnection();
+                let window = model.window(t);
+                for i in 0..model.subsystems {
+                    let prm = model.param_set(window.ids[i]);
+                    let mi = &mut self.mean_scratch[i * n..(i + 1) * n];
+                    mi.fill(0.0);
+                    mat_vec_add(mi, &prm.A, &mean[i * n..(i + 1) * n]);
+                    mat_vec_add(mi, &prm.B, &v[i * s..(i + 1) * s]);
+                    mat_vec_add(mi, &prm.C, &u[i * m..(i + 1) * m]);
+                    let ci = &mut cov[i * n * n..(i + 1) * n * n];
+                    scratch.copy_from_slice(ci);
+                    nahi::propagate_cov(&prm.A, scratch, Some(&prm.Q), ci, ws);
+                }
+                mean.copy_from_slice(&self.mean_scratch);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `S = P + m mᵀ` (`n × n`, column-major).
+fn second_moment(cov: &[f64], mean: &[f64], s: &mut [f64]) {
+    let n = mean.len();
+    s.copy_from_slice(cov);
+    for c in 0..n {
+        for r in 0..n {
+            s[c * n + r] += mean[r] * mean[c];
+        }
+    }
+}
+
+/// Adds `Q_i` of time `t` to the diagonal blocks.
+fn add_process_noise(model: &Model, t: usize, p: &mut SymBand) {
+    let window = model.window(t);
+    for i in 0..model.subsystems {
+        let q = model.param_set(window.ids[i]).Q.as_slice();
+        for (b, qv) in p.block_mut(i, 0).iter_mut().zip(q) {
+            *b += qv;
+        }
+    }
+}
+
+/// A band error at time `t` as the filter's error, naming `t`, the block and the remedies of
+/// SPEC §9.
+fn band_error_at(t: usize, loading: f64, k: usize, what: &str, e: BandError) -> Error {
+    let (i, detail) = match e {
+        BandError::CliqueNotPositiveDefinite { first, last } => (
+            first + 1,
+            format!("the {what} clique of blocks {}..{}", first + 1, last + 1),
+        ),
+        BandError::PivotNotPositiveDefinite { block } => (
+            block + 1,
+            format!("the {what} Cholesky pivot of block {}", block + 1),
+        ),
+    };
+    Error::Numerical {
+        t,
+        i,
+        msg: format!(
+            "joint filter: {detail} is not positive definite; raise --loading (now {loading:e}) or --band (now {k})"
+        ),
+    }
+}
+
+impl ChainFilter for JointFilter<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let (n, big_n, t) = (model.dims.n, model.subsystems, self.t);
+        // Update (SPEC §9 update steps 1–7).
+        load_diagonal(&mut self.p_pred, self.loading);
+        if let Moments::Band { cov, .. } = &mut self.moments {
+            load_diagonal(cov, self.loading);
+        }
+        completion_precision(&self.p_pred, self.k, &mut self.lambda, &mut self.completion)
+            .map_err(|e| self.band_error("prior", e))?;
+        self.measurement_information(y, u)?;
+        self.chol
+            .factor(&self.lambda)
+            .map_err(|e| self.band_error("posterior", e))?;
+        self.chol.solve_in_place(&mut self.r);
+        for ((xf, xp), dx) in self.x_filt.iter_mut().zip(&self.x_pred).zip(&self.r) {
+            *xf = xp + dx;
+        }
+        // The A_eff of this step fixes the width w the prediction needs.
+        self.solver.prepare(model, t)?;
+        if self.a_eff.prepare(model, t, &self.solver) || self.sandwich_stale() {
+            let b = self.a_eff.half_width();
+            let w = (self.k + 2 * b).min(big_n - 1);
+            self.sandwich = SandwichWorkspace::new(big_n, n, b, self.k);
+            self.p_filt = SymBand::zeros(big_n, n, w);
+            if let Moments::Band { completed, .. } = &mut self.moments {
+                *completed = SymBand::zeros(big_n, n, w);
+            }
+        }
+        self.chol.selected_inverse(&mut self.p_filt);
+        diagonal_blocks(&self.p_filt, &mut self.block_filt);
+
+        // Predict (SPEC §9 predict steps 1–5).
+        propagate_mean(
+            model,
+            t,
+            &self.solver,
+            &self.x_filt,
+            Some(u),
+            &mut self.x_pred,
+            &mut self.lifted_ws,
+        );
+        sandwich(
+            self.a_eff.band(),
+            &self.p_filt,
+            &mut self.p_pred,
+            &mut self.sandwich,
+        );
+        add_process_noise(model, t, &mut self.p_pred);
+        self.propagate_moments(u)?;
+        diagonal_blocks(&self.p_pred, &mut self.block_pred);
+        self.t += 1;
+        Ok(())
+    }
+
+    fn filtered(&self) -> (&[f64], &[f64]) {
+        (&self.x_filt, &self.block_filt)
+    }
+
+    fn predicted(&self) -> (&[f64], &[f64]) {
+        (&self.x_pred, &self.block_pred)
+    }
+
+    fn covariance_band(&self, predicted: bool) -> Option<(&SymBand, usize)> {
+        Some((JointFilter::covariance_band(self, predicted), self.k))
+    }
+}
+
+impl JointFilter<'_> {
+    /// True when the posterior band is narrower than the current `A_eff` needs (after a
+    /// rebuild elsewhere); kept separate so that the common path tests one integer.
+    fn sandwich_stale(&self) -> bool {
+        let w = (self.k + 2 * self.a_eff.half_width()).min(self.model.subsystems - 1);
+        self.p_filt.width() != w
+    }
+}
+
+/// One step of a [`JointSchedule`].
+struct ScheduledStep {
+    /// The Cholesky factor of `Λ⁺(t)`.
+    chol: BandCholesky,
+    /// Every subsystem's `R_i⁻¹ H_i` (`q × n`, column-major), so that `r_i = (R_i⁻¹ H_i)ᵀ ỹ_i`.
+    gains: Vec<f64>,
+    block_filt: Vec<f64>,
+    block_pred: Vec<f64>,
+}
+
+/// The covariance pass of the unknown-dropout joint filter with the `band` or `lifted`
+/// moment, stored per step. It depends on the model and the inputs only, not on the
+/// measurements (SPEC §9), so `evaluate` computes it once and replays it for every run with
+/// [`ScheduledJoint`], which costs a banded solve and a chain solve per step.
+pub struct JointSchedule<'m> {
+    model: &'m Model,
+    steps: Vec<ScheduledStep>,
+}
+
+impl<'m> JointSchedule<'m> {
+    /// Bytes a schedule of `steps` steps needs with band `k`.
+    pub fn bytes(model: &Model, k: usize, steps: usize) -> usize {
+        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
+        let k = k.min(big_n - 1);
+        steps * 8 * big_n * (2 * (k + 1) * n * n + q * n + 2 * n * n)
+    }
+
+    /// Runs the covariance pass for the inputs `u[t]` (`N·m` values per step).
+    pub fn new(model: &'m Model, opts: JointOptions, u: &[Vec<f64>]) -> Result<Self> {
+        if opts.dropouts == Dropouts::Known || opts.second_moment == SecondMoment::Local {
+            return Err(Error::Usage(
+                "the joint filter's covariance pass depends on the data in the known-dropout mode and with the local moment".into(),
+            ));
+        }
+        let mut filter = JointFilter::new(model, opts)?;
+        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
+        filter.recorded_gains = Some(vec![0.0; big_n * q * n]);
+        let y = vec![0.0; big_n * q];
+        let mut steps = Vec::with_capacity(u.len());
+        for ut in u {
+            filter.step(&y, ut)?;
+            steps.push(ScheduledStep {
+                chol: filter.chol.clone(),
+                gains: filter.recorded_gains.clone().expect("recording"),
+                block_filt: filter.block_filt.clone(),
+                block_pred: filter.block_pred.clone(),
+            });
+        }
+        Ok(Self { model, steps })
+    }
+}
+
+/// The joint filter replayed from a [`JointSchedule`]: only the means are computed. Equal to
+/// [`JointFilter`] with the same options.
+pub struct ScheduledJoint<'s, 'm> {
+    sched: &'s JointSchedule<'m>,
+    t: usize,
+    solver: ChainSolver,
+    x_pred: Vec<f64>,
+    x_filt: Vec<f64>,
+    r: Vec<f64>,
+    innov: Vec<f64>,
+    lifted_ws: LiftedWorkspace,
+}
+
+impl<'s, 'm> ScheduledJoint<'s, 'm> {
+    pub fn new(sched: &'s JointSchedule<'m>) -> Result<Self> {
+        let model = sched.model;
+        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
+        let x: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
+        Ok(Self {
+            sched,
+            t: 1,
+            solver: ChainSolver::new(model, 1)?,
+            x_filt: x.clone(),
+            x_pred: x,
+            r: vec![0.0; big_n * n],
+            innov: vec![0.0; q],
+            lifted_ws: LiftedWorkspace::default(),
+        })
+    }
+}
+
+impl ChainFilter for ScheduledJoint<'_, '_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.sched.model;
+        let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
+        let t = self.t;
+        let Some(step) = self.sched.steps.get(t - 1) else {
+            return Err(Error::Usage(format!(
+                "the joint filter's schedule ends before t = {t}"
+            )));
+        };
+        let window = model.window(t);
+        for i in 0..model.subsystems {
+            let prm = model.param_set(window.ids[i]);
+            let p = window.p[i];
+            for k in 0..q {
+                let mut acc = y[i * q + k];
+                for c in 0..m {
+                    acc -= prm.R[(k, c)] * u[i * m + c];
+                }
+                for c in 0..n {
+                    acc -= p * prm.J[(k, c)] * self.x_pred[i * n + c];
+                }
+                self.innov[k] = acc;
+            }
+            let w = &step.gains[i * q * n..(i + 1) * q * n];
+            for c in 0..n {
+                self.r[i * n + c] = (0..q).map(|k| w[c * q + k] * self.innov[k]).sum();
+            }
+        }
+        step.chol.solve_in_place(&mut self.r);
+        for ((xf, xp), dx) in self.x_filt.iter_mut().zip(&self.x_pred).zip(&self.r) {
+            *xf = xp + dx;
+        }
+        self.solver.prepare(model, t)?;
+        propagate_mean(
+            model,
+            t,
+            &self.solver,
+            &self.x_filt,
+            Some(u),
+            &mut self.x_pred,
+            &mut self.lifted_ws,
+        );
+        self.t += 1;
+        Ok(())
+    }
+
+    fn filtered(&self) -> (&[f64], &[f64]) {
+        (&self.x_filt, &self.sched.steps[self.t - 2].block_filt)
+    }
+
+    fn predicted(&self) -> (&[f64], &[f64]) {
+        (&self.x_pred, &self.sched.steps[self.t - 2].block_pred)
+    }
+}
