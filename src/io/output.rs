@@ -1,6 +1,8 @@
 //! Output destinations: standard output, or a file written atomically (a temporary file in the
 //! target folder, renamed over the target only when everything was written), so that an error
 //! or an interrupted run never leaves a half-written file and keeps the previous one intact.
+//! A destination that exists and is not a regular file (`/dev/null`, a named pipe, a terminal)
+//! is written in place: renaming over it would replace the device or pipe with a file.
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -16,6 +18,11 @@ pub enum Output {
         file: BufWriter<tempfile::NamedTempFile>,
         dest: PathBuf,
     },
+    /// An existing destination that is not a regular file, opened for writing as it is.
+    Special {
+        file: BufWriter<std::fs::File>,
+        dest: PathBuf,
+    },
 }
 
 impl Output {
@@ -26,6 +33,17 @@ impl Output {
                 BUFFER,
                 std::io::stdout(),
             )))));
+        }
+        let special = std::fs::metadata(dest).is_ok_and(|m| !m.is_file() && !m.is_dir());
+        if special {
+            let file = std::fs::OpenOptions::new()
+                .write(true)
+                .open(dest)
+                .map_err(|e| Error::io(dest, e))?;
+            return Ok(Output::Special {
+                file: BufWriter::with_capacity(BUFFER, file),
+                dest: dest.to_path_buf(),
+            });
         }
         if dest.is_dir() {
             return Err(Error::io(
@@ -62,7 +80,7 @@ impl Output {
     pub fn name(&self) -> String {
         match self {
             Output::Stdout(_) => "-".into(),
-            Output::File { dest, .. } => dest.display().to_string(),
+            Output::File { dest, .. } | Output::Special { dest, .. } => dest.display().to_string(),
         }
     }
 
@@ -87,6 +105,7 @@ impl Output {
                 tmp.persist(&dest).map_err(|e| Error::io(&dest, e.error))?;
                 Ok(())
             }
+            Output::Special { mut file, dest } => file.flush().map_err(|e| Error::io(&dest, e)),
         }
     }
 }
@@ -96,6 +115,7 @@ impl Write for Output {
         match self {
             Output::Stdout(w) => w.write(buf),
             Output::File { file, .. } => file.write(buf),
+            Output::Special { file, .. } => file.write(buf),
         }
     }
 
@@ -103,6 +123,7 @@ impl Write for Output {
         match self {
             Output::Stdout(w) => w.write_all(buf),
             Output::File { file, .. } => file.write_all(buf),
+            Output::Special { file, .. } => file.write_all(buf),
         }
     }
 
@@ -110,6 +131,7 @@ impl Write for Output {
         match self {
             Output::Stdout(w) => w.flush(),
             Output::File { file, .. } => file.flush(),
+            Output::Special { file, .. } => file.flush(),
         }
     }
 }
@@ -152,5 +174,56 @@ impl Write for HeldStdout {
     fn flush(&mut self) -> std::io::Result<()> {
         // Flushing is for `finish`: intermediate flushes would pass partial output on.
         Ok(())
+    }
+}
+
+#[cfg(all(test, unix))]
+mod tests {
+    use super::*;
+    use std::io::Read;
+    use std::os::unix::fs::FileTypeExt;
+
+    /// A named pipe (like `/dev/null`, a file that is not a regular one) is written in place:
+    /// renaming a temporary file over it would replace the pipe with a plain file.
+    #[test]
+    fn special_files_are_written_in_place() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe");
+        let status = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .expect("mkfifo runs");
+        assert!(status.success());
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || {
+                let mut text = String::new();
+                std::fs::File::open(fifo)
+                    .unwrap()
+                    .read_to_string(&mut text)
+                    .unwrap();
+                text
+            })
+        };
+        let mut out = Output::create(&fifo).unwrap();
+        assert!(matches!(out, Output::Special { .. }));
+        out.write_all(b"t,i\n1,1\n").unwrap();
+        out.commit().unwrap();
+        assert_eq!(reader.join().unwrap(), "t,i\n1,1\n");
+        assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn regular_files_are_replaced_atomically() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.csv");
+        std::fs::write(&path, "old").unwrap();
+        let mut out = Output::create(&path).unwrap();
+        assert!(matches!(out, Output::File { .. }));
+        out.write_all(b"new").unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "old");
+        out.commit().unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "new");
     }
 }
