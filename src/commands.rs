@@ -374,6 +374,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         }
     }
 
+    let two_step_only = args.filter == FilterKind::Distributed;
     let metadata = serde_json::json!({
         "sisfilt_version": env!("CARGO_PKG_VERSION"),
         "config": { "path": src.name, "sha256": sha256_hex(&src.text) },
@@ -381,9 +382,10 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "inputs": inputs_file.as_ref().map(|p| p.display().to_string()),
         "options": {
             "filter": args.filter,
-            "solver": opts.solver,
-            "second_moment": opts.second_moment,
-            "interconnect_from": opts.interconnect_from,
+            // The two-step filter's options; the other filters ignore them (null).
+            "solver": two_step_only.then_some(opts.solver),
+            "second_moment": two_step_only.then_some(opts.second_moment),
+            "interconnect_from": two_step_only.then_some(opts.interconnect_from),
             "dropouts": opts.dropouts,
             "paper": args.paper,
             "output": if args.predicted { "predicted" } else { "filtered" },

@@ -306,3 +306,65 @@ fn scheduled_joint_filter_equals_joint_filter() {
         gap.p
     );
 }
+
+/// The command line: `--filter joint` writes the cross-covariance columns in JSON (null past
+/// the chain's end), its CSV has the usual columns, and the joint filter's options are bad
+/// input for the other filters (exit 2, one line).
+#[test]
+fn joint_filter_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/paper.toml");
+    common::sisfilt()
+        .arg("simulate")
+        .arg(&config)
+        .arg("--out")
+        .arg(dir.path())
+        .assert()
+        .success();
+    let meas = dir.path().join("measurements.csv");
+    let json = dir.path().join("joint.json");
+    common::sisfilt()
+        .args(["estimate", "--filter", "joint", "--band", "2", "--meas"])
+        .arg(&meas)
+        .arg("--out")
+        .arg(&json)
+        .assert()
+        .success();
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let columns: Vec<&str> = v["columns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_str().unwrap())
+        .collect();
+    assert_eq!(columns.len(), 7 + 2 * 4, "{columns:?}");
+    assert_eq!(columns[7], "C1_1_1");
+    assert_eq!(columns[14], "C2_2_2");
+    let rows = v["estimates"].as_array().unwrap();
+    assert_eq!(rows.len(), 6 * 150);
+    // Subsystem 6 (last) has no neighbour to the right; subsystem 5 has one at d = 1 only.
+    assert!(rows[5][7].is_null() && rows[4][7].is_number() && rows[4][11].is_null());
+    assert_eq!(v["options"]["joint"]["band"], 2);
+
+    for bad in [
+        vec!["--band", "3"],
+        vec!["--loading", "1e-6"],
+        vec!["--second-moment", "band"],
+        vec!["--filter", "joint", "--second-moment", "paper"],
+    ] {
+        let out = common::sisfilt()
+            .arg("estimate")
+            .args(&bad)
+            .arg("--meas")
+            .arg(&meas)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{bad:?}");
+        let line = common::one_error_line(&out.stderr);
+        assert!(
+            line.contains("joint") || line.contains("distributed"),
+            "{line}"
+        );
+    }
+}
