@@ -12,7 +12,7 @@ use serde::Serialize;
 use crate::interconnect::SolverKind;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
-pub use two_step::{TwoStepFilter, two_step};
+pub use two_step::{Sharing, TwoStepFilter, two_step};
 
 use crate::error::Result;
 
