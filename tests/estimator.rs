@@ -384,3 +384,119 @@ fn parallel_step_two_is_bitwise_identical() {
             .all(|(a, b)| a.to_bits() == b.to_bits())
     );
 }
+
+const SHARED: &str = "
+subsystems = 7
+steps = 25
+[interconnection]
+plus = 1
+minus = 1
+[model]
+A = [[0.9, 0.2], [-0.1, 0.8]]
+B = [[0.3, 0.1], [0.0, 0.2]]
+C = [[0.0], [0.5]]
+D = [[0.4, 0.1], [0.2, 0.3]]
+G = [[0.2, 0.1], [0.1, 0.2]]
+J = [[1.0, 0.3]]
+R = [[0.2]]
+M = [[0.3]]
+Q = [[0.02, 0.0], [0.0, 0.01]]
+[dropout]
+p = PVAL
+[initial]
+mean = [0.5, -0.5]
+cov = [[1.0, 0.1], [0.1, 0.5]]
+[input]
+kind = \"sine\"
+period = 13.0
+phase = 0.7
+[[override]]
+steps = [5, 9]
+A = [[0.8, 0.1], [-0.2, 0.85]]
+";
+
+/// Covariance recursions shared by identical subsystems (computed once per step) give the
+/// same bits as every subsystem computing its own; chains whose subsystems differ in a
+/// parameter the recursion uses do not share it.
+#[test]
+fn shared_recursions_equal_per_subsystem_ones() {
+    let scalar_p = SHARED.replace("PVAL", "0.8");
+    let cases: Vec<(&str, String, [bool; 2], [bool; 2])> = vec![
+        // (name, config, (moment, gain) sharing for local, for paper)
+        ("homogeneous", scalar_p.clone(), [true, false], [true, true]),
+        (
+            "p varies",
+            SHARED.replace("PVAL", "[0.9, 0.5, 0.7, 1.0, 0.3, 0.8, 0.8]"),
+            [true, false],
+            [true, false],
+        ),
+        (
+            "A varies",
+            scalar_p.clone() + "[[override]]\nsubsystems = [2, 3]\nA = [[0.7, 0.0], [0.1, 0.6]]\n",
+            [false, false],
+            [false, false],
+        ),
+        (
+            "J varies",
+            scalar_p.clone() + "[[override]]\nsubsystems = [4, 4]\nJ = [[0.5, 1.0]]\n",
+            [true, false],
+            [true, false],
+        ),
+        (
+            "same A in an override",
+            scalar_p.clone()
+                + "[[override]]\nsubsystems = [2, 2]\nsteps = [1, 4]\nA = [[0.9, 0.2], [-0.1, 0.8]]\nB = [[0.1, 0.1], [0.1, 0.1]]\n",
+            [true, false],
+            [true, true],
+        ),
+    ];
+    for (name, text, local, paper) in cases {
+        let model = model_from(&text);
+        let run = simulate_run(&model, 5);
+        for (second_moment, expected) in
+            [(SecondMoment::Local, local), (SecondMoment::Paper, paper)]
+        {
+            let opts = TwoStepOptions {
+                second_moment,
+                ..TwoStepOptions::default()
+            };
+            type Fixed<'m> = TwoStepFilter<'m, sisfilt::filter::kernel::FixedKernel<2, 1>>;
+            let fixed = Fixed::with_kernel(&model, opts).unwrap();
+            let sharing = fixed.sharing();
+            assert_eq!(
+                [sharing.moment, sharing.gain],
+                expected,
+                "{name} {second_moment:?}"
+            );
+            let filters: Vec<Box<dyn ChainFilter>> = vec![
+                Box::new(fixed),
+                Box::new(Fixed::with_kernel(&model, opts).unwrap().without_sharing()),
+                Box::new(TwoStepFilter::new(&model, opts).unwrap()),
+                Box::new(TwoStepFilter::new(&model, opts).unwrap().without_sharing()),
+            ];
+            let mut filters = filters;
+            for (y, u) in run.y.iter().zip(&run.u) {
+                let mut outputs = Vec::new();
+                for f in filters.iter_mut() {
+                    f.step(y, u).unwrap();
+                    let ((x, p), (xp, tp)) = (f.filtered(), f.predicted());
+                    outputs.push([x, p, xp, tp].concat());
+                }
+                for pair in [(0, 1), (2, 3)] {
+                    let (a, b) = (&outputs[pair.0], &outputs[pair.1]);
+                    assert!(
+                        a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits()),
+                        "{name} {second_moment:?}: shared and per-subsystem differ"
+                    );
+                }
+                // The fixed-size and dynamic kernels agree to rounding.
+                for (a, b) in outputs[0].iter().zip(&outputs[2]) {
+                    assert!(
+                        (a - b).abs() <= 1e-12 * (1.0 + b.abs()),
+                        "{name}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+    }
+}

@@ -21,9 +21,19 @@ pub struct LocalData<'a> {
 }
 
 /// Local Nahi update and covariance prediction for parameter set `set` of the model.
+///
+/// The unknown-dropout update splits into a covariance part ([`LocalKernel::covariance_update`]:
+/// gain and `P(t|t)` from `T`, `S`, `p`, independent of the data) and a mean part
+/// ([`LocalKernel::mean_update`]); [`LocalKernel::update`] is the two together, with the same
+/// arithmetic, so a gain computed once and shared by identical subsystems gives the same bits
+/// as each subsystem computing its own.
 pub trait LocalKernel: Clone + Send + Sync + Sized {
+    /// What the mean update needs of the covariance update: `H = p J` and the gain.
+    type Gain: Clone + Send + Sync;
     /// Prepares the kernel for every parameter set of `model`.
     fn new(model: &Model) -> Self;
+    /// A gain of the right sizes, to be filled by [`LocalKernel::covariance_update`].
+    fn new_gain(&self) -> Self::Gain;
     /// The Nahi update ([`nahi::update`]); `s` is the second moment `S` (`n × n`,
     /// column-major; unused in the known-dropout mode). Returns `false` when `Σ` is not
     /// positive definite.
@@ -38,8 +48,24 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
         x_filt: &mut [f64],
         p_filt: &mut [f64],
     ) -> bool;
+    /// The covariance part of the unknown-dropout update: `H = p J`,
+    /// `R_eff = M + p(1−p) J S Jᵀ`, the gain `L = T Hᵀ Σ⁻¹` into `gain` and `P(t|t)` (Joseph
+    /// form) into `p_filt`. Returns `false` when `Σ` is not positive definite.
+    fn covariance_update(
+        &mut self,
+        set: u32,
+        p: f64,
+        s: &[f64],
+        t_pred: &[f64],
+        p_filt: &mut [f64],
+        gain: &mut Self::Gain,
+    ) -> bool;
+    /// The mean part: `x̂(t|t) = x̂ + L (y − R u − H x̂)`.
+    fn mean_update(gain: &Self::Gain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]);
     /// `out = A X Aᵀ + Q` (or without `Q`), symmetrised.
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]);
+    /// `out = A x` (overwrites `out`).
+    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]);
 }
 
 /// Any size: nalgebra's dynamic matrices and one reused [`Workspace`].
@@ -47,13 +73,36 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
 pub struct DynamicKernel {
     sets: std::sync::Arc<[Params]>,
     ws: Workspace,
+    /// `max(n, q)` zeros and an `n`-vector of scratch for [`LocalKernel::covariance_update`].
+    zeros: Vec<f64>,
+    x_scratch: Vec<f64>,
+}
+
+/// The gain of [`DynamicKernel`]: `H` (`q × n`) and `W = Σ⁻¹ H T = Lᵀ` (`q × n`).
+#[derive(Clone)]
+pub struct DynamicGain {
+    h: DMatrix<f64>,
+    w: DMatrix<f64>,
 }
 
 impl LocalKernel for DynamicKernel {
+    type Gain = DynamicGain;
+
     fn new(model: &Model) -> Self {
+        let (n, q) = (model.dims.n, model.dims.q);
         Self {
             sets: model.param_sets().into(),
-            ws: Workspace::new(model.dims.n, model.dims.q),
+            ws: Workspace::new(n, q),
+            zeros: vec![0.0; n.max(q)],
+            x_scratch: vec![0.0; n],
+        }
+    }
+
+    fn new_gain(&self) -> DynamicGain {
+        let (q, n) = self.sets[0].J.shape();
+        DynamicGain {
+            h: DMatrix::zeros(q, n),
+            w: DMatrix::zeros(q, n),
         }
     }
 
@@ -83,9 +132,73 @@ impl LocalKernel for DynamicKernel {
         nahi::update(&meas, x_pred, t_pred, x_filt, p_filt, &mut self.ws)
     }
 
+    fn covariance_update(
+        &mut self,
+        set: u32,
+        p: f64,
+        s: &[f64],
+        t_pred: &[f64],
+        p_filt: &mut [f64],
+        gain: &mut DynamicGain,
+    ) -> bool {
+        let prm = &self.sets[set as usize];
+        let (q, n) = prm.J.shape();
+        self.ws
+            .second_moment_mut()
+            .as_mut_slice()
+            .copy_from_slice(s);
+        // The mean part of nahi::update is discarded: a zero measurement and prediction
+        // keep it finite.
+        let meas = Measurement {
+            j: &prm.J,
+            m: &prm.M,
+            y: &self.zeros[..q],
+            ru: &self.zeros[..q],
+            p,
+            known: false,
+        };
+        let ok = nahi::update(
+            &meas,
+            &self.zeros[..n],
+            t_pred,
+            &mut self.x_scratch,
+            p_filt,
+            &mut self.ws,
+        );
+        gain.h.copy_from(&prm.J);
+        gain.h.scale_mut(p);
+        gain.w.copy_from(self.ws.gain_transposed());
+        ok
+    }
+
+    fn mean_update(gain: &DynamicGain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]) {
+        // The same operations, in the same order, as nahi::update and kalman_update (the
+        // innovation is recomputed per column rather than stored, to stay allocation-free).
+        let (q, n) = gain.h.shape();
+        let innov = |k: usize| {
+            let mut hx = 0.0;
+            for c in 0..n {
+                hx += gain.h[(k, c)] * x_pred[c];
+            }
+            data.y[k] - data.ru[k] - hx
+        };
+        for c in 0..n {
+            let mut acc = x_pred[c];
+            for k in 0..q {
+                acc += gain.w[(k, c)] * innov(k);
+            }
+            x_filt[c] = acc;
+        }
+    }
+
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]) {
         let prm = &self.sets[set as usize];
         nahi::propagate_cov(&prm.A, x, with_q.then_some(&prm.Q), out, &mut self.ws);
+    }
+
+    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]) {
+        out.fill(0.0);
+        crate::linalg::mat_vec_add(out, &self.sets[set as usize].A, x);
     }
 }
 
@@ -95,6 +208,7 @@ struct FixedSet<const N: usize, const Q: usize> {
     a: SMatrix<f64, N, N>,
     a_tr: SMatrix<f64, N, N>,
     j: SMatrix<f64, Q, N>,
+    j_tr: SMatrix<f64, N, Q>,
     m: SMatrix<f64, Q, Q>,
     q: SMatrix<f64, N, N>,
 }
@@ -103,6 +217,13 @@ struct FixedSet<const N: usize, const Q: usize> {
 #[derive(Clone)]
 pub struct FixedKernel<const N: usize, const Q: usize> {
     sets: std::sync::Arc<[FixedSet<N, Q>]>,
+}
+
+/// The gain of [`FixedKernel`]: `H` and `L = Wᵀ`.
+#[derive(Clone)]
+pub struct FixedGain<const N: usize, const Q: usize> {
+    h: SMatrix<f64, Q, N>,
+    l: SMatrix<f64, N, Q>,
 }
 
 fn fixed<const R: usize, const C: usize>(m: &DMatrix<f64>) -> SMatrix<f64, R, C> {
@@ -119,7 +240,52 @@ fn symmetrize<const N: usize>(m: &mut SMatrix<f64, N, N>) {
     }
 }
 
+impl<const N: usize, const Q: usize> FixedKernel<N, Q> {
+    /// Gain and Joseph-form `P(t|t)` for the measurement model `H`, `R_eff`.
+    #[inline(always)]
+    fn gain(
+        h: &SMatrix<f64, Q, N>,
+        reff: &SMatrix<f64, Q, Q>,
+        t: &SMatrix<f64, N, N>,
+    ) -> Option<(SMatrix<f64, N, Q>, SMatrix<f64, N, N>)> {
+        let ht = h * t;
+        let chol = (ht * h.transpose() + reff).cholesky()?;
+        let l = chol.solve(&ht).transpose(); // W = Σ⁻¹ H T, L = Wᵀ
+        let f = SMatrix::<f64, N, N>::identity() - l * h;
+        let mut pf = f * t * f.transpose() + l * reff * l.transpose();
+        symmetrize(&mut pf);
+        Some((l, pf))
+    }
+
+    /// `R_eff = M + p(1−p) J S Jᵀ`.
+    #[inline(always)]
+    fn reff(set: &FixedSet<N, Q>, p: f64, s: &[f64]) -> SMatrix<f64, Q, Q> {
+        let mut reff = set.m;
+        if p * (1.0 - p) != 0.0 {
+            let s = SMatrix::<f64, N, N>::from_column_slice(s);
+            reff += set.j * s * set.j_tr * (p * (1.0 - p));
+        }
+        reff
+    }
+
+    #[inline(always)]
+    fn mean(
+        h: &SMatrix<f64, Q, N>,
+        l: &SMatrix<f64, N, Q>,
+        data: &LocalData,
+        x_pred: &[f64],
+        x_filt: &mut [f64],
+    ) {
+        let x = SVector::<f64, N>::from_column_slice(x_pred);
+        let innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
+        let xf = x + l * innov;
+        x_filt.copy_from_slice(xf.as_slice());
+    }
+}
+
 impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
+    type Gain = FixedGain<N, Q>;
+
     fn new(model: &Model) -> Self {
         assert_eq!((model.dims.n, model.dims.q), (N, Q), "kernel size mismatch");
         Self {
@@ -130,6 +296,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
                     a: fixed(&p.A),
                     a_tr: fixed::<N, N>(&p.A).transpose(),
                     j: fixed(&p.J),
+                    j_tr: fixed::<Q, N>(&p.J).transpose(),
                     m: fixed(&p.M),
                     q: fixed(&p.Q),
                 })
@@ -138,6 +305,14 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         }
     }
 
+    fn new_gain(&self) -> FixedGain<N, Q> {
+        FixedGain {
+            h: SMatrix::zeros(),
+            l: SMatrix::zeros(),
+        }
+    }
+
+    #[inline]
     fn update(
         &mut self,
         set: u32,
@@ -149,41 +324,69 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         p_filt: &mut [f64],
     ) -> bool {
         let prm = &self.sets[set as usize];
-        let p = data.p;
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
-        let x = SVector::<f64, N>::from_column_slice(x_pred);
-        let mut h = prm.j * p;
-        let mut reff = prm.m;
-        if !data.known && p * (1.0 - p) != 0.0 {
-            let s = SMatrix::<f64, N, N>::from_column_slice(s);
-            reff += prm.j * s * prm.j.transpose() * (p * (1.0 - p));
+        if !data.known {
+            let h = prm.j * data.p;
+            let reff = Self::reff(prm, data.p, s);
+            let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
+                return false;
+            };
+            Self::mean(&h, &l, data, x_pred, x_filt);
+            p_filt.copy_from_slice(pf.as_slice());
+            return true;
         }
+        // Known dropouts: a lost row gets H_k = 0, ỹ_k = 0 and a unit row and column in
+        // R_eff, so it contributes nothing (see nahi).
+        let mut h = prm.j * data.p;
+        let mut reff = prm.m;
+        let x = SVector::<f64, N>::from_column_slice(x_pred);
         let mut innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
-        if data.known {
-            for k in 0..Q {
-                if data.y[k].is_nan() {
-                    h.row_mut(k).fill(0.0);
-                    reff.row_mut(k).fill(0.0);
-                    reff.column_mut(k).fill(0.0);
-                    reff[(k, k)] = 1.0;
-                    innov[k] = 0.0;
-                }
+        for k in 0..Q {
+            if data.y[k].is_nan() {
+                h.row_mut(k).fill(0.0);
+                reff.row_mut(k).fill(0.0);
+                reff.column_mut(k).fill(0.0);
+                reff[(k, k)] = 1.0;
+                innov[k] = 0.0;
             }
         }
-        let ht = h * t;
-        let Some(chol) = (ht * h.transpose() + reff).cholesky() else {
+        let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
             return false;
         };
-        let w = chol.solve(&ht); // W = Σ⁻¹ H T, L = Wᵀ
-        let xf = x + w.transpose() * innov;
-        let f = SMatrix::<f64, N, N>::identity() - w.transpose() * h;
-        let mut pf = f * t * f.transpose() + w.transpose() * reff * w;
-        symmetrize(&mut pf);
+        let xf = x + l * innov;
         x_filt.copy_from_slice(xf.as_slice());
         p_filt.copy_from_slice(pf.as_slice());
         true
     }
 
+    fn covariance_update(
+        &mut self,
+        set: u32,
+        p: f64,
+        s: &[f64],
+        t_pred: &[f64],
+        p_filt: &mut [f64],
+        gain: &mut FixedGain<N, Q>,
+    ) -> bool {
+        let prm = &self.sets[set as usize];
+        let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
+        let h = prm.j * p;
+        let reff = Self::reff(prm, p, s);
+        let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
+            return false;
+        };
+        gain.h = h;
+        gain.l = l;
+        p_filt.copy_from_slice(pf.as_slice());
+        true
+    }
+
+    #[inline]
+    fn mean_update(gain: &FixedGain<N, Q>, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]) {
+        Self::mean(&gain.h, &gain.l, data, x_pred, x_filt);
+    }
+
+    #[inline]
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]) {
         let prm = &self.sets[set as usize];
         let x = SMatrix::<f64, N, N>::from_column_slice(x);
@@ -193,5 +396,11 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         }
         symmetrize(&mut r);
         out.copy_from_slice(r.as_slice());
+    }
+
+    #[inline]
+    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]) {
+        let x = SVector::<f64, N>::from_column_slice(x);
+        out.copy_from_slice((self.sets[set as usize].a * x).as_slice());
     }
 }

@@ -15,7 +15,7 @@ use crate::interconnect::SolverKind;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
 pub use joint::{JointFilter, JointOptions};
-pub use two_step::{TwoStepFilter, two_step};
+pub use two_step::{Sharing, TwoStepFilter, two_step};
 
 use crate::error::Result;
 

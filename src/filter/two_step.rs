@@ -3,12 +3,26 @@
 //! estimates, and every subsystem predicts with `v̂` taken as a known input.
 //!
 //! State is kept in flat arrays, subsystem after subsystem (`N·n` means, `N·n²` column-major
-//! covariances). The local updates and predictions of long chains run in parallel over chunks
-//! of subsystems (rayon); each subsystem's arithmetic is the same whatever the thread count,
-//! so the results are too. Step 1 is a sequential sweep.
+//! covariances). A time step is three phases: the local updates (which also form
+//! `z = D x̂ + H u` for step 1), the step-1 solve (a sequential sweep along the chain), and the
+//! local predictions. On long chains the two local phases run in parallel over fixed chunks of
+//! subsystems (rayon), each chunk with its own preallocated kernel and scratch, so a step
+//! allocates nothing; each subsystem's arithmetic is the same whatever the thread count, so
+//! the results are too.
+//!
+//! **Shared recursions.** The covariance recursions do not depend on the data, so subsystems
+//! with the same parameters share them (computed once per step, the same bits as computing
+//! them per subsystem):
+//! - `local` moment: `Pₓ⁺ = A Pₓ Aᵀ + Q` from `Pₓ(1) = P0` is one matrix when every subsystem
+//!   has the same `A` and `Q` at every time (only the means `m` differ);
+//! - `paper` moment: `S⁺ = A S Aᵀ` is one matrix when `A` is the same everywhere; when also
+//!   `J`, `M`, `Q` and `p` are, the whole covariance recursion (`T`, the gain, `P(t|t)`) is,
+//!   and only the means are per subsystem.
+
+use rayon::iter::Either;
+use rayon::prelude::*;
 
 use nalgebra::DMatrix;
-use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::filter::kernel::{DynamicKernel, FixedKernel, LocalData, LocalKernel};
@@ -18,9 +32,57 @@ use crate::lifted::{LiftedMoments, LiftedSystem};
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
 
-/// Chains at least this long run step 2 in parallel, in chunks of [`CHUNK`] subsystems.
+/// Chains at least this long run the local phases in parallel, in chunks of [`CHUNK`]
+/// subsystems (fixed, so that the work of a chunk does not depend on the thread count).
 const PARALLEL_MIN: usize = 4096;
 const CHUNK: usize = 1024;
+
+/// Which covariance recursions all subsystems share (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Sharing {
+    /// The moment covariance (`Pₓ` for `local`, `S` for `paper`) is one matrix.
+    pub moment: bool,
+    /// `T`, the gain and `P(t|t)` are one each (`paper` only).
+    pub gain: bool,
+}
+
+impl Sharing {
+    const NONE: Sharing = Sharing {
+        moment: false,
+        gain: false,
+    };
+
+    fn of(model: &Model, opts: &TwoStepOptions) -> Sharing {
+        if opts.dropouts == Dropouts::Known {
+            return Sharing::NONE;
+        }
+        // Compared by value: two parameter sets may hold the same matrices.
+        let same = |keys: &[&str], with_p: bool| {
+            model.windows().iter().all(|w| {
+                let first = model.param_set(w.ids[0]);
+                w.ids.iter().zip(&w.p).all(|(&id, &p)| {
+                    let set = model.param_set(id);
+                    (id == w.ids[0] || keys.iter().all(|k| set.get(k) == first.get(k)))
+                        && (!with_p || p == w.p[0])
+                })
+            })
+        };
+        match opts.second_moment {
+            SecondMoment::Local => Sharing {
+                moment: same(&["A", "Q"], false),
+                gain: false,
+            },
+            SecondMoment::Paper => {
+                let moment = same(&["A"], false);
+                Sharing {
+                    moment,
+                    gain: moment && same(&["A", "J", "M", "Q"], true),
+                }
+            }
+            SecondMoment::Lifted | SecondMoment::Band => Sharing::NONE,
+        }
+    }
+}
 
 /// The filter's state between time steps; `K` does the per-subsystem arithmetic (use
 /// [`two_step`] to get the fastest kernel for the model's sizes).
@@ -36,22 +98,33 @@ pub struct TwoStepFilter<'m, K: LocalKernel = DynamicKernel> {
     /// `x̂(t|t)`, `P(t|t)` of the last step.
     x_filt: Vec<f64>,
     p_filt: Vec<f64>,
-    /// `local`: the mean `m` and covariance `Pₓ` of `x`; `paper`: `S` in `moment_cov`.
+    /// `local`: the means `m` of `x` (`N·n`; unused otherwise).
     moment_mean: Vec<f64>,
+    /// `local`: the covariances `Pₓ`; `paper`: `S`. Per subsystem (`N·n²`), or empty when
+    /// shared.
     moment_cov: Vec<f64>,
+    /// The shared moment covariance (`n²`), when [`Sharing::moment`].
+    moment_shared: Vec<f64>,
+    /// The shared `T` and `P(t|t)` (`n²` each) and gain, when [`Sharing::gain`].
+    t_shared: Vec<f64>,
+    p_shared: Vec<f64>,
+    gain: K::Gain,
+    sharing: Sharing,
     /// `lifted`: the exact moments of the lifted system.
     lifted: Option<(LiftedSystem, LiftedMoments)>,
     z: Vec<f64>,
     v: Vec<f64>,
     solve_scratch: Vec<f64>,
-    kernel: K,
-    scratch: Scratch,
+    /// One kernel and scratch per chunk of [`CHUNK`] subsystems (the first also serves the
+    /// sequential path).
+    workers: Vec<Worker<K>>,
     solver_error: f64,
 }
 
-/// Per-thread scratch of the local work.
+/// The preallocated state of one chunk's local work.
 #[derive(Clone)]
-struct Scratch {
+struct Worker<K> {
+    kernel: K,
     /// `S` of the current subsystem (`n × n`), and a matrix for the lifted moments.
     s_buf: Vec<f64>,
     s_mat: DMatrix<f64>,
@@ -60,9 +133,11 @@ struct Scratch {
     mean: Vec<f64>,
 }
 
-impl Scratch {
-    fn new(n: usize, q: usize) -> Self {
+impl<K: LocalKernel> Worker<K> {
+    fn new(model: &Model) -> Self {
+        let (n, q) = (model.dims.n, model.dims.q);
         Self {
+            kernel: K::new(model),
             s_buf: vec![0.0; n * n],
             s_mat: DMatrix::zeros(n, n),
             ru: vec![0.0; q],
@@ -72,82 +147,109 @@ impl Scratch {
     }
 }
 
+/// What a failed local update reports: the 0-based subsystem.
+type FirstFailure = Option<usize>;
+
 /// What the local updates read at time `t`.
-struct UpdateInputs<'a> {
+struct UpdateInputs<'a, G> {
     model: &'a Model,
     t: usize,
     known: bool,
     second_moment: SecondMoment,
+    from_predicted: bool,
     lifted: Option<&'a LiftedMoments>,
     x_pred: &'a [f64],
     t_pred: &'a [f64],
     moment_mean: &'a [f64],
+    /// Per subsystem, or empty when `moment_shared` holds the one matrix.
     moment_cov: &'a [f64],
+    moment_shared: &'a [f64],
+    /// The shared gain and `P(t|t)`, when every subsystem uses them.
+    shared: Option<(&'a G, &'a [f64])>,
     y: &'a [f64],
     u: &'a [f64],
 }
 
-/// The Nahi updates of subsystems `first..first + x_filt.len() / n` (0-based).
+/// The Nahi updates and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
+/// (0-based). Returns the first subsystem whose `Σ` is not positive definite.
 fn update_range<K: LocalKernel>(
-    inp: &UpdateInputs,
-    kernel: &mut K,
-    sc: &mut Scratch,
+    inp: &UpdateInputs<K::Gain>,
+    wk: &mut Worker<K>,
     first: usize,
     x_filt: &mut [f64],
     p_filt: &mut [f64],
-) -> Result<()> {
+    z: &mut [f64],
+) -> FirstFailure {
     let model = inp.model;
     let d = model.dims;
-    let (n, q, m) = (d.n, d.q, d.m);
+    let (n, q, m, s) = (d.n, d.q, d.m, d.s());
     let window = model.window(inp.t);
     for (k, (xf, pf)) in x_filt
-        .chunks_mut(n)
-        .zip(p_filt.chunks_mut(n * n))
+        .chunks_exact_mut(n)
+        .zip(p_filt.chunks_exact_mut(n * n))
         .enumerate()
     {
         let i = first + k;
-        let prm = model.param_set(window.ids[i]);
+        let set = window.ids[i];
+        let prm = model.param_set(set);
         let (nn, vi) = (i * n * n..(i + 1) * n * n, i * n..(i + 1) * n);
-        if let Some(moments) = inp.lifted {
-            moments.second_moment(i, n, &mut sc.s_mat);
-            sc.s_buf.copy_from_slice(sc.s_mat.as_slice());
-        } else if !inp.known {
-            sc.s_buf.copy_from_slice(&inp.moment_cov[nn.clone()]);
-            if inp.second_moment == SecondMoment::Local {
-                let mean = &inp.moment_mean[vi.clone()];
-                for c in 0..n {
-                    for r in 0..n {
-                        sc.s_buf[c * n + r] += mean[r] * mean[c];
-                    }
-                }
-            }
-        }
-        sc.ru.fill(0.0);
-        mat_vec_add(&mut sc.ru, &prm.R, &inp.u[i * m..(i + 1) * m]);
+        let ui = &inp.u[i * m..(i + 1) * m];
+        wk.ru.fill(0.0);
+        mat_vec_add(&mut wk.ru, &prm.R, ui);
         let data = LocalData {
             y: &inp.y[i * q..(i + 1) * q],
-            ru: &sc.ru,
+            ru: &wk.ru,
             p: if inp.known { 1.0 } else { window.p[i] },
             known: inp.known,
         };
-        let ok = kernel.update(
-            window.ids[i],
-            &data,
-            &sc.s_buf,
-            &inp.x_pred[vi],
-            &inp.t_pred[nn],
-            xf,
-            pf,
-        );
-        if !ok {
-            return Err(Error::Numerical {
-                t: inp.t,
-                i: i + 1,
-                msg: "the innovation covariance Σ is not positive definite".into(),
-            });
+        if let Some((gain, p_shared)) = inp.shared {
+            K::mean_update(gain, &data, &inp.x_pred[vi.clone()], xf);
+            pf.copy_from_slice(p_shared);
+        } else {
+            if let Some(moments) = inp.lifted {
+                moments.second_moment(i, n, &mut wk.s_mat);
+                wk.s_buf.copy_from_slice(wk.s_mat.as_slice());
+            } else if !inp.known {
+                let cov = if inp.moment_cov.is_empty() {
+                    inp.moment_shared
+                } else {
+                    &inp.moment_cov[nn.clone()]
+                };
+                wk.s_buf.copy_from_slice(cov);
+                if inp.second_moment == SecondMoment::Local {
+                    let mean = &inp.moment_mean[vi.clone()];
+                    for c in 0..n {
+                        for r in 0..n {
+                            wk.s_buf[c * n + r] += mean[r] * mean[c];
+                        }
+                    }
+                }
+            }
+            let ok = wk.kernel.update(
+                set,
+                &data,
+                &wk.s_buf,
+                &inp.x_pred[vi.clone()],
+                &inp.t_pred[nn],
+                xf,
+                pf,
+            );
+            if !ok {
+                return Some(i);
+            }
         }
+        // Step 1's right-hand side, from the estimate that feeds it (SPEC §3).
+        let zi = &mut z[k * s..(k + 1) * s];
+        zi.fill(0.0);
+        let source: &[f64] = if inp.from_predicted {
+            &inp.x_pred[vi]
+        } else {
+            xf
+        };
+        mat_vec_add(zi, &prm.D, source);
+        mat_vec_add(zi, &prm.H, ui);
     }
-    Ok(())
+    None
 }
 
 /// What the local predictions read at time `t`.
@@ -158,63 +260,86 @@ struct PredictInputs<'a> {
     second_moment: SecondMoment,
     x_filt: &'a [f64],
     p_filt: &'a [f64],
+    /// The shared `T(t+1)`, when every subsystem uses it.
+    t_shared: Option<&'a [f64]>,
     v: &'a [f64],
     u: &'a [f64],
 }
 
-/// The outputs of the local predictions of a range of subsystems.
-struct PredictOutputs<'a> {
-    x_pred: &'a mut [f64],
-    t_pred: &'a mut [f64],
-    moment_mean: &'a mut [f64],
-    moment_cov: &'a mut [f64],
-}
-
 /// `x̂⁺ = A x̂(t|t) + B v̂ + C u`, `T⁺ = A P Aᵀ + Q` and the moments, for subsystems from
-/// `first` on (0-based).
+/// `first` on (0-based). `moment_cov` is empty when that covariance is shared. Returns the
+/// first subsystem whose prediction is not finite.
 fn predict_range<K: LocalKernel>(
     inp: &PredictInputs,
-    kernel: &mut K,
-    sc: &mut Scratch,
+    wk: &mut Worker<K>,
     first: usize,
-    out: PredictOutputs,
-) {
+    x_pred: &mut [f64],
+    t_pred: &mut [f64],
+    moment_mean: &mut [f64],
+    moment_cov: &mut [f64],
+) -> FirstFailure {
     let model = inp.model;
     let d = model.dims;
     let (n, m, s) = (d.n, d.m, d.s());
     let window = model.window(inp.t);
-    let count = out.x_pred.len() / n;
+    let count = x_pred.len() / n;
+    let mut failed = None;
     for k in 0..count {
         let i = first + k;
-        let prm = model.param_set(window.ids[i]);
         let set = window.ids[i];
+        let prm = model.param_set(set);
         let (nn, vi) = (i * n * n..(i + 1) * n * n, i * n..(i + 1) * n);
         let (kn, kv) = (k * n * n..(k + 1) * n * n, k * n..(k + 1) * n);
         let (vv, ui) = (&inp.v[i * s..(i + 1) * s], &inp.u[i * m..(i + 1) * m]);
-        let xp = &mut out.x_pred[kv.clone()];
-        xp.fill(0.0);
-        mat_vec_add(xp, &prm.A, &inp.x_filt[vi]);
+        let xp = &mut x_pred[kv.clone()];
+        wk.kernel.apply_a(set, &inp.x_filt[vi], xp);
         mat_vec_add(xp, &prm.B, vv);
         mat_vec_add(xp, &prm.C, ui);
-        kernel.propagate(set, true, &inp.p_filt[nn], &mut out.t_pred[kn.clone()]);
+        let tp = &mut t_pred[kn.clone()];
+        match inp.t_shared {
+            Some(shared) => tp.copy_from_slice(shared),
+            None => wk.kernel.propagate(set, true, &inp.p_filt[nn], tp),
+        }
+        if failed.is_none() && !(xp.iter().chain(&*tp).all(|v| v.is_finite())) {
+            failed = Some(i);
+        }
         if inp.known {
             continue;
         }
-        let cov = &mut out.moment_cov[kn];
-        sc.cov.copy_from_slice(cov);
-        match inp.second_moment {
-            SecondMoment::Local => {
-                kernel.propagate(set, true, &sc.cov, cov);
-                let mean = &mut out.moment_mean[kv];
-                sc.mean.copy_from_slice(mean);
-                mean.fill(0.0);
-                mat_vec_add(mean, &prm.A, &sc.mean);
-                mat_vec_add(mean, &prm.B, vv);
-                mat_vec_add(mean, &prm.C, ui);
-            }
-            SecondMoment::Paper => kernel.propagate(set, false, &sc.cov, cov),
-            SecondMoment::Lifted | SecondMoment::Band => {}
+        if inp.second_moment == SecondMoment::Local {
+            let mean = &mut moment_mean[kv];
+            wk.mean.copy_from_slice(mean);
+            wk.kernel.apply_a(set, &wk.mean, mean);
+            mat_vec_add(mean, &prm.B, vv);
+            mat_vec_add(mean, &prm.C, ui);
         }
+        if !moment_cov.is_empty() {
+            let cov = &mut moment_cov[kn];
+            wk.cov.copy_from_slice(cov);
+            match inp.second_moment {
+                SecondMoment::Local => wk.kernel.propagate(set, true, &wk.cov, cov),
+                SecondMoment::Paper => wk.kernel.propagate(set, false, &wk.cov, cov),
+                SecondMoment::Lifted | SecondMoment::Band => {}
+            }
+        }
+    }
+    failed
+}
+
+/// `v.par_chunks_mut(size)`, or `count` empty slices when `v` is empty.
+fn par_chunks_or_empty(
+    v: &mut [f64],
+    size: usize,
+    count: usize,
+) -> impl IndexedParallelIterator<Item = &mut [f64]> {
+    if v.is_empty() {
+        Either::Right(
+            (0..count)
+                .into_par_iter()
+                .map(|_| -> &mut [f64] { &mut [] }),
+        )
+    } else {
+        Either::Left(v.par_chunks_mut(size))
     }
 }
 
@@ -262,16 +387,29 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         let p0 = model.initial_cov.as_slice();
         let x_pred: Vec<f64> = m0.iter().copied().cycle().take(big_n * n).collect();
         let t_pred: Vec<f64> = p0.iter().copied().cycle().take(big_n * n * n).collect();
-        let mut moment_cov = t_pred.clone();
+        // local: Pₓ(1) = P0; paper: S(1) = P0 + m0 m0ᵀ.
+        let mut moment_one = p0.to_vec();
         if opts.second_moment == SecondMoment::Paper {
-            for cov in moment_cov.chunks_mut(n * n) {
-                for r in 0..n {
-                    for c in 0..n {
-                        cov[c * n + r] += m0[r] * m0[c];
-                    }
+            for r in 0..n {
+                for c in 0..n {
+                    moment_one[c * n + r] += m0[r] * m0[c];
                 }
             }
         }
+        let sharing = Sharing::of(model, &opts);
+        let per_subsystem_moment = !sharing.moment
+            && opts.dropouts == Dropouts::Unknown
+            && opts.second_moment != SecondMoment::Lifted;
+        let moment_cov = if per_subsystem_moment {
+            moment_one
+                .iter()
+                .copied()
+                .cycle()
+                .take(big_n * n * n)
+                .collect()
+        } else {
+            Vec::new()
+        };
         let solver = Interconnect::new(opts.solver, model, 1)?;
         let solver_error = solver.error_estimate();
         let lifted = if opts.second_moment == SecondMoment::Lifted {
@@ -279,6 +417,8 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         } else {
             None
         };
+        let worker = Worker::<K>::new(model);
+        let gain = worker.kernel.new_gain();
         Ok(Self {
             model,
             opts,
@@ -290,14 +430,56 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
             x_pred,
             t_pred,
             moment_cov,
+            moment_shared: moment_one,
+            t_shared: p0.to_vec(),
+            p_shared: p0.to_vec(),
+            gain,
+            sharing,
             lifted,
             z: vec![0.0; big_n * d.s()],
             v: vec![0.0; big_n * d.s()],
-            solve_scratch: Vec::new(),
-            kernel: K::new(model),
-            scratch: Scratch::new(n, d.q),
+            solve_scratch: Vec::with_capacity(big_n * d.s()),
+            workers: vec![worker; big_n.div_ceil(CHUNK).max(1)],
             solver_error,
         })
+    }
+
+    /// Turns the shared recursions off: every subsystem computes its own covariances, as on
+    /// a chain with different parameters. For tests and benchmarks of the sharing.
+    pub fn without_sharing(mut self) -> Self {
+        if self.sharing.moment {
+            let n2 = self.moment_shared.len();
+            self.moment_cov = self
+                .moment_shared
+                .iter()
+                .copied()
+                .cycle()
+                .take(self.model.subsystems * n2)
+                .collect();
+        }
+        self.sharing = Sharing::NONE;
+        self
+    }
+
+    /// Which recursions this filter shares between subsystems.
+    pub fn sharing(&self) -> Sharing {
+        self.sharing
+    }
+
+    fn numerical(&self, t: usize, i: usize, msg: &str) -> Error {
+        let hint = if self.solver_error > crate::interconnect::TRANSFER_ERROR_WARNING {
+            format!(
+                " (the transfer solver's estimated relative error is {:.1e}; use --solver banded)",
+                self.solver_error
+            )
+        } else {
+            String::new()
+        };
+        Error::Numerical {
+            t,
+            i: i + 1,
+            msg: format!("{msg}{hint}"),
+        }
     }
 }
 
@@ -305,63 +487,83 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = self.model;
         let d = model.dims;
-        let (n, m, s, big_n) = (d.n, d.m, d.s(), model.subsystems);
+        let (n, s, big_n) = (d.n, d.s(), model.subsystems);
         let t = self.t;
         self.solver.prepare(model, t)?;
         self.solver_error = self.solver_error.max(self.solver.error_estimate());
         let window = model.window(t);
         let known = self.opts.dropouts == Dropouts::Known;
         let parallel = big_n >= PARALLEL_MIN && rayon::current_num_threads() > 1;
+        const NOT_PD: &str = "the innovation covariance Σ is not positive definite";
+
+        // The shared covariance update, once for all subsystems.
+        if self.sharing.gain {
+            let ok = self.workers[0].kernel.covariance_update(
+                window.ids[0],
+                window.p[0],
+                &self.moment_shared,
+                &self.t_shared,
+                &mut self.p_shared,
+                &mut self.gain,
+            );
+            if !ok {
+                return Err(self.numerical(t, 0, NOT_PD));
+            }
+        }
 
         let inp = UpdateInputs {
             model,
             t,
             known,
             second_moment: self.opts.second_moment,
+            from_predicted: self.opts.interconnect_from == InterconnectFrom::Predicted,
             lifted: self.lifted.as_ref().map(|(_, mom)| mom),
             x_pred: &self.x_pred,
             t_pred: &self.t_pred,
             moment_mean: &self.moment_mean,
             moment_cov: &self.moment_cov,
+            moment_shared: &self.moment_shared,
+            shared: self
+                .sharing
+                .gain
+                .then_some((&self.gain, self.p_shared.as_slice())),
             y,
             u,
         };
-        if parallel {
-            let (kernel, scratch) = (&self.kernel, &self.scratch);
-            self.x_filt
-                .par_chunks_mut(CHUNK * n)
+        let failed = if parallel {
+            let chunks = self.workers.len();
+            self.workers
+                .par_iter_mut()
+                .zip(self.x_filt.par_chunks_mut(CHUNK * n))
                 .zip(self.p_filt.par_chunks_mut(CHUNK * n * n))
+                .zip(par_chunks_or_empty(&mut self.z, CHUNK * s, chunks))
                 .enumerate()
-                .try_for_each_init(
-                    || (kernel.clone(), scratch.clone()),
-                    |(k, sc), (c, (xf, pf))| update_range(&inp, k, sc, c * CHUNK, xf, pf),
-                )?;
+                .filter_map(|(c, (((wk, xf), pf), z))| update_range(&inp, wk, c * CHUNK, xf, pf, z))
+                .min()
         } else {
             update_range(
                 &inp,
-                &mut self.kernel,
-                &mut self.scratch,
+                &mut self.workers[0],
                 0,
                 &mut self.x_filt,
                 &mut self.p_filt,
-            )?;
+                &mut self.z,
+            )
+        };
+        if let Some(i) = failed {
+            return Err(self.numerical(t, i, NOT_PD));
         }
 
         // Step 1: v̂ from z = D x̂ + H u.
-        let source = match self.opts.interconnect_from {
-            InterconnectFrom::Filtered => &self.x_filt,
-            InterconnectFrom::Predicted => &self.x_pred,
-        };
-        self.z.fill(0.0);
-        for i in 0..big_n {
-            let prm = model.param_set(window.ids[i]);
-            let zi = &mut self.z[i * s..(i + 1) * s];
-            mat_vec_add(zi, &prm.D, &source[i * n..(i + 1) * n]);
-            mat_vec_add(zi, &prm.H, &u[i * m..(i + 1) * m]);
-        }
         self.solver
             .solve(&self.z, &mut self.v, &mut self.solve_scratch);
 
+        if self.sharing.gain {
+            let set = window.ids[0];
+            self.workers[0]
+                .kernel
+                .propagate(set, true, &self.p_shared, &mut self.t_shared);
+        }
         let inp = PredictInputs {
             model,
             t,
@@ -369,65 +571,53 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
             second_moment: self.opts.second_moment,
             x_filt: &self.x_filt,
             p_filt: &self.p_filt,
+            t_shared: self.sharing.gain.then_some(self.t_shared.as_slice()),
             v: &self.v,
             u,
         };
-        if parallel {
-            let (kernel, scratch) = (&self.kernel, &self.scratch);
-            self.x_pred
-                .par_chunks_mut(CHUNK * n)
+        let failed = if parallel {
+            let chunks = self.workers.len();
+            self.workers
+                .par_iter_mut()
+                .zip(self.x_pred.par_chunks_mut(CHUNK * n))
                 .zip(self.t_pred.par_chunks_mut(CHUNK * n * n))
                 .zip(self.moment_mean.par_chunks_mut(CHUNK * n))
-                .zip(self.moment_cov.par_chunks_mut(CHUNK * n * n))
+                .zip(par_chunks_or_empty(
+                    &mut self.moment_cov,
+                    CHUNK * n * n,
+                    chunks,
+                ))
                 .enumerate()
-                .for_each_init(
-                    || (kernel.clone(), scratch.clone()),
-                    |(k, sc), (c, (((xp, tp), mm), mc))| {
-                        let out = PredictOutputs {
-                            x_pred: xp,
-                            t_pred: tp,
-                            moment_mean: mm,
-                            moment_cov: mc,
-                        };
-                        predict_range(&inp, k, sc, c * CHUNK, out)
-                    },
-                );
+                .filter_map(|(c, ((((wk, xp), tp), mm), mc))| {
+                    predict_range(&inp, wk, c * CHUNK, xp, tp, mm, mc)
+                })
+                .min()
         } else {
-            let out = PredictOutputs {
-                x_pred: &mut self.x_pred,
-                t_pred: &mut self.t_pred,
-                moment_mean: &mut self.moment_mean,
-                moment_cov: &mut self.moment_cov,
-            };
-            predict_range(&inp, &mut self.kernel, &mut self.scratch, 0, out);
+            predict_range(
+                &inp,
+                &mut self.workers[0],
+                0,
+                &mut self.x_pred,
+                &mut self.t_pred,
+                &mut self.moment_mean,
+                &mut self.moment_cov,
+            )
+        };
+        if self.sharing.moment {
+            let set = window.ids[0];
+            let with_q = self.opts.second_moment == SecondMoment::Local;
+            let wk = &mut self.workers[0];
+            wk.cov.copy_from_slice(&self.moment_shared);
+            wk.kernel
+                .propagate(set, with_q, &wk.cov, &mut self.moment_shared);
         }
         if let Some((sys, moments)) = &mut self.lifted {
             sys.prepare(model, t)?;
             moments.propagate(sys, u);
         }
         // A blown-up step 1 (e.g. the transfer solver on a long chain) must not pass as data.
-        let n2 = n * n;
-        if let Some(i) = (0..model.subsystems).find(|&i| {
-            !self.x_pred[i * n..(i + 1) * n]
-                .iter()
-                .all(|v| v.is_finite())
-                || !self.t_pred[i * n2..(i + 1) * n2]
-                    .iter()
-                    .all(|v| v.is_finite())
-        }) {
-            let hint = if self.solver_error > crate::interconnect::TRANSFER_ERROR_WARNING {
-                format!(
-                    " (the transfer solver's estimated relative error is {:.1e}; use --solver banded)",
-                    self.solver_error
-                )
-            } else {
-                String::new()
-            };
-            return Err(Error::Numerical {
-                t,
-                i: i + 1,
-                msg: format!("the estimate is no longer finite{hint}"),
-            });
+        if let Some(i) = failed {
+            return Err(self.numerical(t, i, "the estimate is no longer finite"));
         }
         self.t += 1;
         Ok(())
