@@ -41,5 +41,6 @@ pub mod lifted;
 pub mod linalg;
 pub mod model;
 pub mod simulate;
+pub mod smoother;
 
 pub use error::{Error, Result};

@@ -12,10 +12,12 @@
 mod cholesky;
 mod completion;
 mod kernels;
+mod products;
 mod sandwich;
 
 pub use cholesky::BandCholesky;
 pub use completion::{CompletionWorkspace, completion_precision};
+pub use products::{gen_t_times_gen, sym_times_gen};
 pub use sandwich::{SandwichWorkspace, sandwich};
 
 use nalgebra::DMatrix;
@@ -391,6 +393,43 @@ mod tests {
                 let expect = band_of(&(&a_dense * &p * a_dense.transpose()), bs, k);
                 let err = rel(&out.to_dense(), &expect);
                 assert!(err < 1e-12, "nb {nb} bs {bs} k {k} b {b}: {err:e}");
+            }
+        }
+    }
+
+    #[test]
+    fn smoother_products_match_dense() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        for (nb, bs, k) in cases() {
+            for b in [0, 1, 2] {
+                let n = nb * bs;
+                let a = GenBand::from_dense(
+                    &DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0)),
+                    bs,
+                    b,
+                );
+                let s = SymBand::from_dense(&random_spd(nb, bs, &mut rng), bs, k);
+                let (ad, sd) = (a.to_dense(), s.to_dense());
+                let mut w = GenBand::zeros(nb, bs, k + b);
+                sym_times_gen(&s, &a, &mut w);
+                assert!(
+                    rel(&w.to_dense(), &(&sd * &ad)) < 1e-12,
+                    "S A: {nb} {bs} {k} {b}"
+                );
+                let mut m = SymBand::zeros(nb, bs, k + 2 * b);
+                gen_t_times_gen(&a, &w, &mut m);
+                let expect = ad.transpose() * &sd * &ad;
+                assert!(
+                    rel(&m.to_dense(), &expect) < 1e-12,
+                    "Aᵀ S A: {nb} {bs} {k} {b}"
+                );
+                let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let xv = nalgebra::DVector::from_column_slice(&x);
+                let mut out = vec![0.0; n];
+                s.mul_vec(&x, &mut out);
+                assert!((nalgebra::DVector::from_vec(out.clone()) - &sd * &xv).amax() < 1e-12);
+                a.mul_vec_transposed(&x, &mut out);
+                assert!((nalgebra::DVector::from_vec(out) - ad.transpose() * &xv).amax() < 1e-12);
             }
         }
     }

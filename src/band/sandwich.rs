@@ -1,6 +1,7 @@
 //! SPEC §9 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
 use super::kernels::gemm_acc;
+use super::products::sym_block;
 use super::{GenBand, SymBand};
 
 /// The strip `W = A P` on `|i − m| ≤ k + b`.
@@ -18,17 +19,6 @@ impl SandwichWorkspace {
             hw,
             w: vec![0.0; nb * (2 * hw + 1) * bs * bs],
         }
-    }
-}
-
-/// Block `(l, m)` of the symmetric band `p` and whether it is stored transposed; `None`
-/// outside the band.
-#[inline]
-fn sym_block(p: &SymBand, l: usize, m: usize) -> Option<(&[f64], bool)> {
-    if l <= m {
-        (m - l <= p.width()).then(|| (p.block(l, m - l), false))
-    } else {
-        (l - m <= p.width()).then(|| (p.block(m, l - m), true))
     }
 }
 

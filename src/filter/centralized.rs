@@ -69,6 +69,21 @@ impl<'m> CentralizedFilter<'m> {
         })
     }
 
+    /// The whole `P(t|t)` of the last step (`Nn × Nn`, column-major), for the smoother.
+    pub(crate) fn full_filtered_cov(&self) -> &[f64] {
+        &self.p_filt
+    }
+
+    /// The whole `T(t+1)` of the last step, for the smoother.
+    pub(crate) fn full_predicted_cov(&self) -> &[f64] {
+        &self.t_pred
+    }
+
+    /// The lifted system of the last step (`A_eff(t)`), for the smoother.
+    pub(crate) fn lifted_system(&self) -> &LiftedSystem {
+        &self.sys
+    }
+
     fn diagonal_blocks(cov: &[f64], size: usize, n: usize, out: &mut [f64]) {
         for i in 0..size / n {
             for c in 0..n {

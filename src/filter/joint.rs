@@ -337,6 +337,8 @@ pub struct JointFilter<'m> {
     block_pred: Vec<f64>,
     /// When recording a [`JointSchedule`]: every subsystem's `R_i⁻¹ H_i` of the last step.
     recorded_gains: Option<Vec<f64>>,
+    /// For the smoother (SPEC §10): `Λ⁻(t)` and `Λ⁺(t)` of the last step.
+    pub(crate) kept_precisions: Option<(SymBand, SymBand)>,
 }
 
 impl<'m> JointFilter<'m> {
@@ -414,6 +416,7 @@ impl<'m> JointFilter<'m> {
             block_filt: block_pred.clone(),
             block_pred,
             recorded_gains: None,
+            kept_precisions: None,
         })
     }
 
@@ -425,6 +428,16 @@ impl<'m> JointFilter<'m> {
     /// The half-width `b` of the current `A_eff` band.
     pub fn a_eff_half_width(&self) -> usize {
         self.a_eff.half_width()
+    }
+
+    /// The band of `A_eff` used by the last prediction.
+    pub fn a_eff_band(&self) -> &GenBand {
+        self.a_eff.band()
+    }
+
+    /// The diagonal loading `ε` in force.
+    pub fn loading(&self) -> f64 {
+        self.loading
     }
 
     /// The covariance of the last output on the band: `P(t|t)` (width ≥ `k`) after a step,
@@ -605,7 +618,13 @@ impl ChainFilter for JointFilter<'_> {
         }
         completion_precision(&self.p_pred, self.k, &mut self.lambda, &mut self.completion)
             .map_err(|e| self.band_error("prior", e))?;
+        if let Some((prior, _)) = &mut self.kept_precisions {
+            prior.copy_band_from(&self.lambda);
+        }
         self.measurement_information(y, u)?;
+        if let Some((_, posterior)) = &mut self.kept_precisions {
+            posterior.copy_band_from(&self.lambda);
+        }
         self.chol
             .factor(&self.lambda)
             .map_err(|e| self.band_error("posterior", e))?;

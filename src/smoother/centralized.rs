@@ -1,0 +1,156 @@
+//! The RTS smoother on the centralized filter of SPEC §5 (SPEC §10 `centralized`; in the
+//! known-dropout mode on its Kalman filter). For `t = T−1, …, 1`, with `T(t+1) = P(t+1|t)`:
+//!
+//! ```text
+//! C_t     = P(t|t) A_eff(t)ᵀ T(t+1)⁻¹                (a Cholesky solve with T(t+1))
+//! x̂(t|T)  = x̂(t|t) + C_t (x̂(t+1|T) − x̂(t+1|t))
+//! P(t|T)  = P(t|t) + C_t (P(t+1|T) − T(t+1)) C_tᵀ     (symmetrised)
+//! ```
+//!
+//! With `Q = 0`, `T(t+1)` can be singular to working precision and this form can diverge.
+//! When the Cholesky factor of some `T(t+1)` fails or its condition estimate exceeds
+//! [`MAX_CONDITION`], the whole run is smoothed instead by the information form at full band
+//! (the joint smoother with `k = N − 1`, exact `A_eff` and §9's loading), and a note says so.
+
+use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
+
+use crate::error::Result;
+use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment};
+use crate::model::Model;
+use crate::smoother::{JointSmoother, Smoothed, Smoother};
+
+/// Largest condition estimate of `T(t+1)` for which the RTS form is used (SPEC §10).
+pub const MAX_CONDITION: f64 = 1e12;
+
+/// The stored forward pass of the centralized filter.
+pub struct CentralizedSmoother<'m> {
+    model: &'m Model,
+    known: bool,
+    filter: CentralizedFilter<'m>,
+    x_filt: Vec<DVector<f64>>,
+    x_pred: Vec<DVector<f64>>,
+    p_filt: Vec<DMatrix<f64>>,
+    t_pred: Vec<DMatrix<f64>>,
+    a_eff: Vec<DMatrix<f64>>,
+    /// The data, to rerun the forward pass in the information form if needed.
+    y: Vec<Vec<f64>>,
+    u: Vec<Vec<f64>>,
+}
+
+impl<'m> CentralizedSmoother<'m> {
+    pub fn new(model: &'m Model, known: bool, max_lifted: usize) -> Result<Self> {
+        Ok(Self {
+            model,
+            known,
+            filter: CentralizedFilter::new(model, known, max_lifted)?,
+            x_filt: Vec::new(),
+            x_pred: Vec::new(),
+            p_filt: Vec::new(),
+            t_pred: Vec::new(),
+            a_eff: Vec::new(),
+            y: Vec::new(),
+            u: Vec::new(),
+        })
+    }
+}
+
+impl Smoother for CentralizedSmoother<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        self.filter.step(y, u)?;
+        let size = self.model.subsystems * self.model.dims.n;
+        let (xf, _) = self.filter.filtered();
+        let (xp, _) = self.filter.predicted();
+        self.x_filt.push(DVector::from_column_slice(xf));
+        self.x_pred.push(DVector::from_column_slice(xp));
+        self.p_filt.push(DMatrix::from_column_slice(
+            size,
+            size,
+            self.filter.full_filtered_cov(),
+        ));
+        self.t_pred.push(DMatrix::from_column_slice(
+            size,
+            size,
+            self.filter.full_predicted_cov(),
+        ));
+        self.a_eff.push(self.filter.lifted_system().a_eff.clone());
+        self.y.push(y.to_vec());
+        self.u.push(u.to_vec());
+        Ok(())
+    }
+
+    fn finish(self: Box<Self>) -> Result<Smoothed> {
+        let model = self.model;
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        let steps = self.x_filt.len();
+        let mut xs = self.x_filt.clone();
+        let mut ps = self.p_filt.clone();
+        for k in (0..steps.saturating_sub(1)).rev() {
+            let t_next = &self.t_pred[k];
+            let chol = Cholesky::new(t_next.clone());
+            let condition = chol.as_ref().map_or(f64::INFINITY, |c| {
+                let d = c.l_dirty().diagonal();
+                (d.max() / d.min()).powi(2)
+            });
+            let Some(chol) = chol.filter(|_| condition <= MAX_CONDITION) else {
+                return self.information_form_fallback(k + 1, condition);
+            };
+            // Cᵀ = T⁻¹ A_eff P.
+            let gain_tr = chol.solve(&(&self.a_eff[k] * &self.p_filt[k]));
+            let dx = &xs[k + 1] - &self.x_pred[k];
+            xs[k] = &self.x_filt[k] + gain_tr.tr_mul(&dx);
+            let diff = &ps[k + 1] - t_next;
+            let mut p = &self.p_filt[k] + gain_tr.tr_mul(&(diff * &gain_tr));
+            p = (&p + p.transpose()) * 0.5;
+            ps[k] = p;
+        }
+        let size = big_n * n;
+        let p = ps
+            .iter()
+            .map(|m| {
+                (0..big_n)
+                    .flat_map(|i| {
+                        let view: DMatrixView<f64> = m.view((i * n, i * n), (n, n));
+                        view.iter().copied().collect::<Vec<_>>()
+                    })
+                    .collect()
+            })
+            .collect();
+        debug_assert!(xs.iter().all(|x| x.len() == size));
+        Ok(Smoothed {
+            x: xs.iter().map(|x| x.as_slice().to_vec()).collect(),
+            p,
+            bands: None,
+            notes: Vec::new(),
+        })
+    }
+}
+
+impl CentralizedSmoother<'_> {
+    /// Smooths the stored data by the information form at full band (SPEC §10 fallback).
+    fn information_form_fallback(&self, t: usize, condition: f64) -> Result<Smoothed> {
+        let model = self.model;
+        let opts = JointOptions {
+            band: model.subsystems - 1,
+            band_tol: 0.0,
+            loading: None,
+            second_moment: SecondMoment::Lifted,
+            dropouts: if self.known {
+                Dropouts::Known
+            } else {
+                Dropouts::Unknown
+            },
+        };
+        let mut joint: Box<dyn Smoother> = Box::new(JointSmoother::new(model, opts)?);
+        for (y, u) in self.y.iter().zip(&self.u) {
+            joint.step(y, u)?;
+        }
+        let mut out = joint.finish()?;
+        out.bands = None;
+        out.notes.push(format!(
+            "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (SPEC §10)",
+            t + 1,
+            opts.loading_for(model)
+        ));
+        Ok(out)
+    }
+}

@@ -1,0 +1,173 @@
+//! The per-subsystem RTS smoother on the two-step filter (SPEC §10 `distributed`): `v̂` is
+//! taken as a known input, as the filter does, so each subsystem is smoothed on its own in
+//! `O(n³)` per step, without communication. For each `i` and `t = T−1, …, 1`:
+//!
+//! ```text
+//! T_i     = A P_i(t|t) Aᵀ + Q                       (the filter's own T(t+1))
+//! C_i     = P_i(t|t) Aᵀ T_i⁻¹                        (a Cholesky solve; never an inverse)
+//! x̂_i(t|T) = x̂_i(t|t) + C_i (x̂_i(t+1|T) − x̂_i(t+1|t))
+//! P_i(t|T) = P_i(t|t) + C_i (P_i(t+1|T) − T_i) C_iᵀ  (symmetrised)
+//! ```
+//!
+//! It inherits the two-step filter's overconfidence and, with `Q = 0`, can be worse than its
+//! own filter (it trusts `x(t+1) = A x + B v̂` exactly).
+
+use nalgebra::{Cholesky, DMatrix, DMatrixView};
+
+use crate::error::{Error, Result};
+use crate::filter::ChainFilter;
+use crate::model::Model;
+use crate::smoother::{Smoothed, Smoother};
+
+/// The forward pass of a filter that predicts each subsystem with `x̂⁺ = A x̂ + …`,
+/// `T⁺ = A P Aᵀ + Q`, stored for the per-subsystem RTS pass.
+pub struct DistributedSmoother<'m> {
+    model: &'m Model,
+    filter: Box<dyn ChainFilter + 'm>,
+    x_filt: Vec<Vec<f64>>,
+    p_filt: Vec<Vec<f64>>,
+    x_pred: Vec<Vec<f64>>,
+    t_pred: Vec<Vec<f64>>,
+}
+
+impl<'m> DistributedSmoother<'m> {
+    pub fn new(model: &'m Model, filter: Box<dyn ChainFilter + 'm>) -> Self {
+        Self {
+            model,
+            filter,
+            x_filt: Vec::new(),
+            p_filt: Vec::new(),
+            x_pred: Vec::new(),
+            t_pred: Vec::new(),
+        }
+    }
+}
+
+/// Scratch of one RTS step of an `n`-state subsystem.
+struct Rts {
+    t_mat: DMatrix<f64>,
+    ap: DMatrix<f64>,
+    gain_tr: DMatrix<f64>,
+    diff: DMatrix<f64>,
+    tmp: DMatrix<f64>,
+}
+
+impl Rts {
+    fn new(n: usize) -> Self {
+        Self {
+            t_mat: DMatrix::zeros(n, n),
+            ap: DMatrix::zeros(n, n),
+            gain_tr: DMatrix::zeros(n, n),
+            diff: DMatrix::zeros(n, n),
+            tmp: DMatrix::zeros(n, n),
+        }
+    }
+
+    /// One RTS step; false when `T` is not positive definite.
+    #[allow(clippy::too_many_arguments)]
+    fn step(
+        &mut self,
+        a: &DMatrix<f64>,
+        p: &[f64],
+        t_next: &[f64],
+        x_filt: &[f64],
+        x_pred_next: &[f64],
+        xs_next: &[f64],
+        ps_next: &[f64],
+        xs: &mut [f64],
+        ps: &mut [f64],
+    ) -> bool {
+        let n = a.nrows();
+        let p = DMatrixView::from_slice(p, n, n);
+        // Cᵀ = T⁻¹ A P.
+        self.ap.gemm(1.0, a, &p, 0.0);
+        self.t_mat.copy_from_slice(t_next);
+        let t_mat = std::mem::replace(&mut self.t_mat, DMatrix::zeros(0, 0));
+        let Some(chol) = Cholesky::new(t_mat) else {
+            self.t_mat = DMatrix::zeros(n, n);
+            return false;
+        };
+        self.gain_tr.copy_from(&self.ap);
+        chol.solve_mut(&mut self.gain_tr);
+        self.t_mat = chol.unpack();
+        for r in 0..n {
+            let mut acc = x_filt[r];
+            for c in 0..n {
+                acc += self.gain_tr[(c, r)] * (xs_next[c] - x_pred_next[c]);
+            }
+            xs[r] = acc;
+        }
+        // P(t|T) = P + C (P(t+1|T) − T) Cᵀ.
+        for k in 0..n * n {
+            self.diff.as_mut_slice()[k] = ps_next[k] - t_next[k];
+        }
+        self.tmp.gemm(1.0, &self.diff, &self.gain_tr, 0.0); // (Ps − T) Cᵀ
+        let mut out = nalgebra::DMatrixViewMut::from_slice(ps, n, n);
+        out.copy_from(&p);
+        out.gemm_tr(1.0, &self.gain_tr, &self.tmp, 1.0);
+        for r in 0..n {
+            for c in 0..r {
+                let v = 0.5 * (out[(r, c)] + out[(c, r)]);
+                out[(r, c)] = v;
+                out[(c, r)] = v;
+            }
+        }
+        true
+    }
+}
+
+impl Smoother for DistributedSmoother<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        self.filter.step(y, u)?;
+        let (xf, pf) = self.filter.filtered();
+        let (xp, tp) = self.filter.predicted();
+        self.x_filt.push(xf.to_vec());
+        self.p_filt.push(pf.to_vec());
+        self.x_pred.push(xp.to_vec());
+        self.t_pred.push(tp.to_vec());
+        Ok(())
+    }
+
+    fn finish(self: Box<Self>) -> Result<Smoothed> {
+        let model = self.model;
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        let steps = self.x_filt.len();
+        let mut xs = self.x_filt.clone();
+        let mut ps = self.p_filt.clone();
+        let mut rts = Rts::new(n);
+        for k in (0..steps.saturating_sub(1)).rev() {
+            let t = k + 1;
+            let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
+            let (ps_head, ps_tail) = ps.split_at_mut(k + 1);
+            let (xs_k, xs_next) = (&mut xs_head[k], &xs_tail[0]);
+            let (ps_k, ps_next) = (&mut ps_head[k], &ps_tail[0]);
+            for i in 0..big_n {
+                let (v, b) = (i * n..(i + 1) * n, i * n * n..(i + 1) * n * n);
+                let ok = rts.step(
+                    &model.params(t, i + 1).A,
+                    &self.p_filt[k][b.clone()],
+                    &self.t_pred[k][b.clone()],
+                    &self.x_filt[k][v.clone()],
+                    &self.x_pred[k][v.clone()],
+                    &xs_next[v.clone()],
+                    &ps_next[b.clone()],
+                    &mut xs_k[v],
+                    &mut ps_k[b],
+                );
+                if !ok {
+                    return Err(Error::Numerical {
+                        t,
+                        i: i + 1,
+                        msg: "distributed smoother: the predicted covariance T(t+1) is not positive definite".into(),
+                    });
+                }
+            }
+        }
+        Ok(Smoothed {
+            x: xs,
+            p: ps,
+            bands: None,
+            notes: Vec::new(),
+        })
+    }
+}

@@ -1,0 +1,302 @@
+//! The information-form smoother on the joint band-k filter (SPEC §10 `joint`), linear in `N`.
+//!
+//! The forward pass is the joint filter of SPEC §9, storing per `t`: `x̂(t|t−1)`, `x̂(t|t)`,
+//! the prior precision band `Λ⁻(t)` (after loading), `Λ⁺(t) = Λ⁻(t) + blkdiag(Φ_i)` and the
+//! band of `A_eff(t)` (once per override window). With `Q_i = G_i G_iᵀ` and `Λˢ(T) = Λ⁺(T)`,
+//! for `t = T−1, …, 1`:
+//!
+//! ```text
+//! I_b = Λˢ(t+1) − Λ⁻(t+1)                      what y(t+1..T) tells about x(t+1)
+//! 𝒥   = [ Λ⁺(t) + A_effᵀ I_b A_eff    A_effᵀ I_b G ]   precision of z_i = [δ_i; ξ_i]
+//!       [ Gᵀ I_b A_eff                I + Gᵀ I_b G ]   (δ = x(t) − x̂(t|t), ξ the noise)
+//! 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v],  v = Λˢ(t+1) (x̂(t+1|T) − x̂(t+1|t)),  x̂(t|T) = x̂(t|t) + δ
+//! P(t|T) = x-part of the band k of 𝒥⁻¹ (selected inversion to κ = min(k + 2b, N − 1))
+//! Λˢ(t)  = the clique/separator precision of that band (with the filter's loading)
+//! ```
+//!
+//! `𝒥` is block-banded with `2n × 2n` blocks and bandwidth `κ`, formed by band products.
+//! At `k = N − 1` this is the centralized smoother.
+
+use std::sync::Arc;
+
+use nalgebra::DMatrix;
+
+use crate::band::{
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
+    gen_t_times_gen, sym_times_gen,
+};
+use crate::error::{Error, Result};
+use crate::filter::{ChainFilter, JointFilter, JointOptions};
+use crate::linalg::psd_sqrt;
+use crate::model::Model;
+use crate::smoother::{Smoothed, Smoother};
+
+/// The stored forward pass of the joint filter.
+pub struct JointSmoother<'m> {
+    model: &'m Model,
+    filter: JointFilter<'m>,
+    x_pred: Vec<Vec<f64>>,
+    x_filt: Vec<Vec<f64>>,
+    prior: Vec<SymBand>,
+    posterior: Vec<SymBand>,
+    /// The `A_eff` band of each step, shared between the steps of a window.
+    a_eff: Vec<Arc<GenBand>>,
+}
+
+impl<'m> JointSmoother<'m> {
+    pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
+        let mut filter = JointFilter::new(model, opts)?;
+        let (n, big_n, k) = (model.dims.n, model.subsystems, filter.band());
+        filter.kept_precisions = Some((SymBand::zeros(big_n, n, k), SymBand::zeros(big_n, n, k)));
+        Ok(Self {
+            model,
+            filter,
+            x_pred: Vec::new(),
+            x_filt: Vec::new(),
+            prior: Vec::new(),
+            posterior: Vec::new(),
+            a_eff: Vec::new(),
+        })
+    }
+}
+
+impl Smoother for JointSmoother<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        self.x_pred.push(self.filter.predicted().0.to_vec());
+        self.filter.step(y, u)?;
+        self.x_filt.push(self.filter.filtered().0.to_vec());
+        let (prior, posterior) = self.filter.kept_precisions.as_ref().expect("kept");
+        self.prior.push(prior.clone());
+        self.posterior.push(posterior.clone());
+        let band = self.filter.a_eff_band();
+        match self.a_eff.last() {
+            Some(last) if **last == *band => {
+                let shared = Arc::clone(last);
+                self.a_eff.push(shared);
+            }
+            _ => self.a_eff.push(Arc::new(band.clone())),
+        }
+        Ok(())
+    }
+
+    fn finish(self: Box<Self>) -> Result<Smoothed> {
+        let model = self.model;
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        let k = self.filter.band();
+        let loading = self.filter.loading();
+        let steps = self.x_filt.len();
+        let mut cov = SymBand::zeros(big_n, n, k);
+        cov.copy_band_from(self.filter.covariance_band(false));
+        let mut xs = vec![Vec::new(); steps];
+        let mut bands = vec![SymBand::zeros(big_n, n, k); steps];
+        xs[steps - 1] = self.x_filt[steps - 1].clone();
+        bands[steps - 1] = cov;
+        let mut lam_s = self.posterior[steps - 1].clone();
+        let mut ws = Backward::new(model);
+        for idx in (0..steps - 1).rev() {
+            let t = idx + 1;
+            let (x, band) = ws
+                .step(
+                    model,
+                    t,
+                    &self.a_eff[idx],
+                    &self.posterior[idx],
+                    &self.prior[idx + 1],
+                    &lam_s,
+                    &self.x_filt[idx],
+                    &self.x_pred[idx + 1],
+                    &xs[idx + 1],
+                )
+                .map_err(|e| smoother_error(t, loading, k, e))?;
+            xs[idx] = x;
+            let mut loaded = band.clone();
+            load_diagonal(&mut loaded, loading);
+            let mut completion = CompletionWorkspace::new(big_n, n, k);
+            completion_precision(&loaded, k, &mut lam_s, &mut completion)
+                .map_err(|e| smoother_error(t, loading, k, e))?;
+            bands[idx] = band;
+        }
+        let p = bands
+            .iter()
+            .map(|b| (0..big_n).flat_map(|i| b.block(i, 0).to_vec()).collect())
+            .collect();
+        Ok(Smoothed {
+            x: xs,
+            p,
+            bands: Some(bands),
+            notes: Vec::new(),
+        })
+    }
+}
+
+/// `P_ii += ε (tr P_ii / n) I` (SPEC §9 "Numerics").
+fn load_diagonal(p: &mut SymBand, eps: f64) {
+    if eps == 0.0 {
+        return;
+    }
+    let n = p.bs();
+    for i in 0..p.nb() {
+        let b = p.block_mut(i, 0);
+        let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
+        for c in 0..n {
+            b[c * n + c] += eps * trace / n as f64;
+        }
+    }
+}
+
+fn smoother_error(t: usize, loading: f64, k: usize, e: BandError) -> Error {
+    let (i, what) = match e {
+        BandError::CliqueNotPositiveDefinite { first, last } => (
+            first + 1,
+            format!("the clique of blocks {}..{}", first + 1, last + 1),
+        ),
+        BandError::PivotNotPositiveDefinite { block } => (
+            block + 1,
+            format!("the Cholesky pivot of block {}", block + 1),
+        ),
+    };
+    Error::Numerical {
+        t,
+        i,
+        msg: format!(
+            "joint smoother: {what} is not positive definite; raise --loading (now {loading:e}) or --band (now {k})"
+        ),
+    }
+}
+
+/// Scratch of the backward pass and the square roots `G_i` of `Q_i` per parameter set.
+struct Backward {
+    roots: Vec<DMatrix<f64>>,
+}
+
+impl Backward {
+    fn new(model: &Model) -> Self {
+        Self {
+            roots: model.param_sets().iter().map(|p| psd_sqrt(&p.Q)).collect(),
+        }
+    }
+
+    /// One backward step at time `t` (SPEC §10 `joint` steps 1–5): `x̂(t|T)` and the band `k`
+    /// of `P(t|T)`.
+    #[allow(clippy::too_many_arguments)]
+    fn step(
+        &mut self,
+        model: &Model,
+        t: usize,
+        a: &GenBand,
+        lam_post: &SymBand,
+        lam_prior_next: &SymBand,
+        lam_s_next: &SymBand,
+        x_filt: &[f64],
+        x_pred_next: &[f64],
+        xs_next: &[f64],
+    ) -> std::result::Result<(Vec<f64>, SymBand), BandError> {
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        let (k, b) = (lam_post.width(), a.half_width());
+        let kappa = (k + 2 * b).min(big_n - 1);
+        let window = model.window(t);
+        let g = |i: usize| &self.roots[window.ids[i] as usize];
+        // 1. I_b = Λˢ(t+1) − Λ⁻(t+1).
+        let mut ib = lam_s_next.clone();
+        for i in 0..big_n {
+            for d in 0..=k.min(big_n - 1 - i) {
+                let src = lam_prior_next.block(i, d);
+                for (o, s) in ib.block_mut(i, d).iter_mut().zip(src) {
+                    *o -= s;
+                }
+            }
+        }
+        // 2. W = I_b A_eff and M = A_effᵀ I_b A_eff, then 𝒥 block by block.
+        let mut w = GenBand::zeros(big_n, n, k + b);
+        sym_times_gen(&ib, a, &mut w);
+        let mut m = SymBand::zeros(big_n, n, kappa);
+        gen_t_times_gen(a, &w, &mut m);
+        let bs = 2 * n;
+        let mut jm = SymBand::zeros(big_n, bs, kappa);
+        for i in 0..big_n {
+            for d in 0..=kappa.min(big_n - 1 - i) {
+                let j = i + d;
+                let blk = jm.block_mut(i, d);
+                // Top left: Λ⁺_ij + M_ij.
+                for c in 0..n {
+                    for r in 0..n {
+                        let mut v = m.block(i, d)[r + c * n];
+                        if d <= k {
+                            v += lam_post.block(i, d)[r + c * n];
+                        }
+                        blk[r + c * bs] = v;
+                    }
+                }
+                // Top right: (A_effᵀ I_b)_ij G_j = W(j, i)ᵀ G_j.
+                if j.abs_diff(i) <= w.half_width() {
+                    let wji = DMatrix::from_column_slice(n, n, w.block(j, i));
+                    let tr = wji.transpose() * g(j);
+                    let wij = DMatrix::from_column_slice(n, n, w.block(i, j));
+                    let bl = g(i).transpose() * wij;
+                    for c in 0..n {
+                        for r in 0..n {
+                            blk[r + (n + c) * bs] = tr[(r, c)];
+                            blk[(n + r) + c * bs] = bl[(r, c)];
+                        }
+                    }
+                }
+                // Bottom right: δ_ij I + G_iᵀ I_b,ij G_j.
+                if d <= k {
+                    let ibij = DMatrix::from_column_slice(n, n, ib.block(i, d));
+                    let br = g(i).transpose() * ibij * g(j);
+                    for c in 0..n {
+                        for r in 0..n {
+                            blk[(n + r) + (n + c) * bs] = br[(r, c)];
+                        }
+                    }
+                }
+                if d == 0 {
+                    for r in 0..n {
+                        blk[(n + r) + (n + r) * bs] += 1.0;
+                    }
+                }
+            }
+        }
+        // 3. Block-banded Cholesky of 𝒥.
+        let mut chol = BandCholesky::new(big_n, bs, kappa);
+        chol.factor(&jm)?;
+        // 4. Mean: 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e.
+        let e: Vec<f64> = xs_next
+            .iter()
+            .zip(x_pred_next)
+            .map(|(s, p)| s - p)
+            .collect();
+        let mut v = vec![0.0; big_n * n];
+        lam_s_next.mul_vec(&e, &mut v);
+        let mut atv = vec![0.0; big_n * n];
+        a.mul_vec_transposed(&v, &mut atv);
+        let mut rhs = vec![0.0; big_n * bs];
+        for i in 0..big_n {
+            let gi = g(i);
+            for r in 0..n {
+                rhs[i * bs + r] = atv[i * n + r];
+                rhs[i * bs + n + r] = (0..n).map(|c| gi[(c, r)] * v[i * n + c]).sum();
+            }
+        }
+        chol.solve_in_place(&mut rhs);
+        let x: Vec<f64> = (0..big_n * n)
+            .map(|q| x_filt[q] + rhs[(q / n) * bs + q % n])
+            .collect();
+        // 5. Covariance: the x-parts of the band k of 𝒥⁻¹.
+        let mut inv = SymBand::zeros(big_n, bs, kappa);
+        chol.selected_inverse(&mut inv);
+        let mut band = SymBand::zeros(big_n, n, k);
+        for i in 0..big_n {
+            for d in 0..=k.min(big_n - 1 - i) {
+                let src = inv.block(i, d);
+                let dst = band.block_mut(i, d);
+                for c in 0..n {
+                    for r in 0..n {
+                        dst[r + c * n] = src[r + c * bs];
+                    }
+                }
+            }
+        }
+        Ok((x, band))
+    }
+}
