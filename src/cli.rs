@@ -129,6 +129,15 @@ pub struct EstimateArgs {
     /// Largest lifted state size N·n the centralized filter accepts.
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
+    /// Write the smoothed x̂(t|T) with P(t|T), from every measurement of the file, instead of
+    /// the filtered estimates (SPEC §10): per-subsystem RTS for distributed, RTS for
+    /// centralized, the information form for joint.
+    #[arg(long, conflicts_with = "predicted")]
+    pub smooth: bool,
+    /// Largest memory the smoother's stored forward pass may take: bytes, or with a K, M or G
+    /// suffix [default: 8G].
+    #[arg(long, value_name = "BYTES", value_parser = parse_max_memory)]
+    pub max_memory: Option<u64>,
     /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: 2].
     #[arg(long, value_name = "K")]
     pub band: Option<usize>,
@@ -139,6 +148,10 @@ pub struct EstimateArgs {
     /// [default: 1e-9 when every Q is zero, else 0].
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
+}
+
+fn parse_max_memory(text: &str) -> Result<u64, String> {
+    crate::smoother::parse_bytes(text)
 }
 
 #[derive(Debug, clap::Args)]

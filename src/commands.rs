@@ -24,6 +24,10 @@ use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
 use crate::lifted::{a_eff_band, spectral_radius};
 use crate::model::{MATRIX_KEYS, Model};
 use crate::simulate::simulate;
+use crate::smoother::{
+    CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
+    SmootherKind, human_bytes, memory_bytes,
+};
 
 /// Power-iteration steps for the spectral radius: `check` takes its time, `estimate` only
 /// wants a quick stability warning.
@@ -141,6 +145,15 @@ fn check(path: &Path) -> Result<()> {
             ));
         }
     }
+    let k = DEFAULT_BAND.min(model.subsystems - 1);
+    report.push(format!(
+        "smoothing memory for T = {}: distributed {}, joint (--band {k}) {}, centralized {} (--max-memory, default {})",
+        model.steps,
+        human_bytes(memory_bytes(&model, SmootherKind::Distributed, model.steps)),
+        human_bytes(memory_bytes(&model, SmootherKind::Joint(k), model.steps)),
+        human_bytes(memory_bytes(&model, SmootherKind::Centralized, model.steps)),
+        human_bytes(DEFAULT_MAX_MEMORY),
+    ));
     // Print only once everything passed, so that a bad config prints nothing on stdout.
     for line in report {
         println!("{line}");
@@ -331,6 +344,9 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     opts.interconnect_from = args.interconnect_from.unwrap_or(opts.interconnect_from);
     opts.dropouts = args.dropouts;
     let joint = joint_options(args)?;
+    if args.max_memory.is_some() && !args.smooth {
+        return Err(Error::Usage("--max-memory belongs to --smooth".into()).into());
+    }
 
     let inputs_file = args.inputs.clone().or_else(|| {
         run_dir
@@ -363,6 +379,11 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         warn(
             "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (SPEC §3); --filter joint keeps it honest (SPEC §9)",
         );
+        if args.smooth {
+            warn(
+                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (SPEC §10); --filter joint --smooth is the remedy",
+            );
+        }
     }
     if opts.dropouts == Dropouts::Unknown && big_n * n <= ESTIMATE_STABILITY_CHECK_MAX {
         let rho = spectral_radius(&model, 1, ESTIMATE_POWER_STEPS)?;
@@ -388,7 +409,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
             "interconnect_from": two_step_only.then_some(opts.interconnect_from),
             "dropouts": opts.dropouts,
             "paper": args.paper,
-            "output": if args.predicted { "predicted" } else { "filtered" },
+            "output": if args.smooth { "smoothed" } else if args.predicted { "predicted" } else { "filtered" },
             "joint": joint.map(|j| serde_json::json!({
                 "band": j.band.min(big_n - 1),
                 "band_tol": j.band_tol,
@@ -399,6 +420,22 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "subsystems": big_n,
         "n": n,
     });
+    if args.smooth {
+        let smoother = make_smoother(args, &model, opts, joint)?;
+        let k = joint.map_or(0, |j| j.band.min(big_n - 1));
+        let writer = EstimatesWriter::new(output, format, n, k, metadata)?;
+        return run_smoother(
+            args,
+            &model,
+            smoother,
+            SmootherIo {
+                meas,
+                inputs,
+                truth,
+                writer,
+            },
+        );
+    }
     let mut filter: Box<dyn ChainFilter> = match (args.filter, joint) {
         (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(&model, j)?),
         (FilterKind::Centralized, _) => Box::new(CentralizedFilter::new(
@@ -485,6 +522,127 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         .into());
     }
     inputs.finish(steps)?;
+    let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
+    if let Some(r) = &report {
+        report_accuracy(r);
+    }
+    writer.finish(report.as_ref())?;
+    Ok(())
+}
+
+/// The smoother of `--filter` (SPEC §10).
+fn make_smoother<'m>(
+    args: &EstimateArgs,
+    model: &'m Model,
+    opts: TwoStepOptions,
+    joint: Option<JointOptions>,
+) -> Result<Box<dyn Smoother + 'm>> {
+    Ok(match (args.filter, joint) {
+        (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
+        (FilterKind::Centralized, _) => Box::new(CentralizedSmoother::new(
+            model,
+            opts.dropouts == Dropouts::Known,
+            args.max_lifted,
+        )?),
+        _ => Box::new(DistributedSmoother::new(model, two_step(model, opts)?)),
+    })
+}
+
+/// The files of a smoothing run.
+struct SmootherIo<R: std::io::Read, T: std::io::Read> {
+    meas: crate::io::StepReader<R>,
+    inputs: InputStream,
+    truth: Option<crate::io::StepReader<T>>,
+    writer: EstimatesWriter,
+}
+
+/// `estimate --smooth`: the forward pass over the whole file (refused politely once its
+/// stored steps exceed `--max-memory`), the backward pass, then every row.
+fn run_smoother<R: std::io::Read, T: std::io::Read>(
+    args: &EstimateArgs,
+    model: &Model,
+    mut smoother: Box<dyn Smoother + '_>,
+    io: SmootherIo<R, T>,
+) -> Result<()> {
+    let SmootherIo {
+        mut meas,
+        mut inputs,
+        mut truth,
+        mut writer,
+    } = io;
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let kind = match args.filter {
+        FilterKind::Distributed => SmootherKind::Distributed,
+        FilterKind::Centralized => SmootherKind::Centralized,
+        FilterKind::Joint => SmootherKind::Joint(args.band.unwrap_or(DEFAULT_BAND)),
+    };
+    let limit = args.max_memory.unwrap_or(DEFAULT_MAX_MEMORY);
+    let mut y = vec![0.0; meas.row_values()];
+    let mut u = vec![0.0; big_n * model.dims.m];
+    let mut truth_rows: Vec<Vec<f64>> = Vec::new();
+    let mut steps = 0;
+    while let Some(t) = meas.read_step(&mut y)? {
+        let need = memory_bytes(model, kind, t);
+        if need > limit {
+            return Err(Error::Usage(format!(
+                "--smooth: the stored forward pass needs {} by t = {t} ({need} bytes), above --max-memory {} ({limit} bytes); raise --max-memory, or smooth a shorter file",
+                human_bytes(need),
+                human_bytes(limit)
+            ))
+            .into());
+        }
+        inputs.next(t, &mut u)?;
+        smoother.step(&y, &u)?;
+        if let Some(truth) = truth.as_mut() {
+            let mut row = vec![0.0; big_n * (n + 1)];
+            if truth.read_step(&mut row)?.is_none() {
+                return Err(Error::File {
+                    file: truth.name().to_string(),
+                    msg: format!(
+                        "ends before t = {t}; the truth must cover every step of the measurements"
+                    ),
+                }
+                .into());
+            }
+            truth_rows.push(row);
+        }
+        steps = t;
+    }
+    if steps == 0 {
+        return Err(Error::File {
+            file: meas.name().to_string(),
+            msg: "holds no measurement rows".into(),
+        }
+        .into());
+    }
+    inputs.finish(steps)?;
+    let smoothed = smoother.finish()?;
+    for note in &smoothed.notes {
+        warn(note);
+    }
+    let out_name = args.out.display().to_string();
+    let mut accuracy = Accuracy::new(n);
+    for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
+        let band = smoothed.bands.as_ref().map(|b| &b[idx]);
+        for i in 0..big_n {
+            writer
+                .row(
+                    idx + 1,
+                    i + 1,
+                    &x[i * n..(i + 1) * n],
+                    &p[i * n * n..(i + 1) * n * n],
+                    |d| band.and_then(|b| (i + d < big_n && d <= b.width()).then(|| b.block(i, d))),
+                )
+                .map_err(|e| Error::io(&out_name, e))?;
+            if let Some(row) = truth_rows.get(idx) {
+                accuracy.add(
+                    &row[i * (n + 1)..i * (n + 1) + n],
+                    &x[i * n..(i + 1) * n],
+                    &p[i * n * n..(i + 1) * n * n],
+                );
+            }
+        }
+    }
     let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
     if let Some(r) = &report {
         report_accuracy(r);
