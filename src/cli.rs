@@ -60,9 +60,14 @@ pub struct EvaluateArgs {
     #[arg(long, value_name = "K", default_value_t = crate::filter::joint::DEFAULT_BAND)]
     pub band: usize,
     /// Run only these filters (comma-separated; default: all): distributed,
-    /// distributed-paper, joint, centralized, centralized-known, naive.
+    /// distributed-paper, joint, centralized, centralized-known, naive, and the smoothers
+    /// distributed-smoother, joint-smoother, centralized-smoother.
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     pub filters: Vec<String>,
+    /// Also run the smoothers of SPEC §10 (distributed-smoother, joint-smoother,
+    /// centralized-smoother); their RMSE ratio is to the centralized smoother.
+    #[arg(long)]
+    pub smooth: bool,
 }
 
 /// The filters `estimate` can run.

@@ -720,6 +720,7 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
         max_lifted: args.max_lifted,
         band: args.band,
         filters: args.filters.clone(),
+        smooth: args.smooth,
     };
     let bar = if std::io::stderr().is_terminal() {
         indicatif::ProgressBar::new(args.runs as u64)

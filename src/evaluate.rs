@@ -21,19 +21,29 @@ use crate::filter::{
 use crate::inputs::InputStream;
 use crate::model::Model;
 use crate::simulate::simulate;
+use crate::smoother::{CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother};
 
-/// The filters compared, in table order.
-pub const FILTERS: [&str; 6] = [
+/// The filters compared, in table order; the smoothers (SPEC §10) run with `--smooth`.
+pub const FILTERS: [&str; 9] = [
     "distributed",
     "distributed-paper",
     "joint",
     "centralized",
     "centralized-known",
     "naive",
+    "distributed-smoother",
+    "joint-smoother",
+    "centralized-smoother",
 ];
 
-/// The filter every RMSE is compared with: the optimal linear estimator.
+/// The filter every filter's RMSE is compared with: the optimal linear estimator.
 const REFERENCE: usize = 3;
+/// The smoother every smoother's RMSE is compared with: the optimal linear smoother.
+const SMOOTHER_REFERENCE: usize = 8;
+
+fn is_smoother(name: &str) -> bool {
+    name.ends_with("-smoother")
+}
 
 /// Settings of an evaluation.
 #[derive(Debug, Clone, Serialize)]
@@ -46,8 +56,11 @@ pub struct EvaluateOptions {
     pub max_lifted: usize,
     /// The joint filter's `--band K`.
     pub band: usize,
-    /// The filters to run (names of [`FILTERS`]); empty means all.
+    /// The filters to run (names of [`FILTERS`]); empty means all filters, and the
+    /// smoothers too with `smooth`.
     pub filters: Vec<String>,
+    /// Also run the smoothers (SPEC §10).
+    pub smooth: bool,
 }
 
 /// The figures of one filter over all runs.
@@ -59,8 +72,11 @@ pub struct FilterResult {
     /// `None` when the filter ran; else why it was skipped or failed.
     pub skipped: Option<String>,
     pub accuracy: Option<AccuracyReport>,
-    /// Overall RMSE divided by the centralized Nahi filter's.
+    /// Overall RMSE divided by the centralized Nahi filter's (for a smoother: by the
+    /// centralized smoother's).
     pub rmse_ratio: Option<f64>,
+    /// For a smoother: overall RMSE divided by the centralized (optimal) filter's.
+    pub rmse_ratio_to_filter: Option<f64>,
     /// Time spent in this filter, summed over runs (seconds).
     pub wall_time_s: f64,
     /// The average NEES at each time step `t = 1..T` over runs and subsystems (`null` where
@@ -93,6 +109,13 @@ fn describe(name: &str) -> &'static str {
             "centralized Kalman filter that knows which measurements were lost: a lower bound"
         }
         "naive" => "per-subsystem Kalman filter that treats every measurement as present",
+        "distributed-smoother" => "per-subsystem RTS smoother on the two-step filter (--smooth)",
+        "joint-smoother" => {
+            "information-form smoother on the joint filter (--filter joint --smooth)"
+        }
+        "centralized-smoother" => {
+            "RTS smoother on the centralized filter: the optimal linear smoother"
+        }
         _ => "",
     }
 }
@@ -213,6 +236,24 @@ impl StepNees {
     }
 }
 
+fn make_smoother<'a>(
+    model: &'a Model,
+    name: &str,
+    opts: &EvaluateOptions,
+) -> Result<Box<dyn Smoother + 'a>> {
+    Ok(match name {
+        "distributed-smoother" => Box::new(DistributedSmoother::new(
+            model,
+            two_step(model, TwoStepOptions::default())?,
+        )),
+        "joint-smoother" => Box::new(JointSmoother::new(model, joint_options(opts))?),
+        "centralized-smoother" => {
+            Box::new(CentralizedSmoother::new(model, false, opts.max_lifted)?)
+        }
+        _ => unreachable!(),
+    })
+}
+
 /// Per run and filter: the accuracy sums (overall and per step), or the error that stopped
 /// the filter, and the time.
 type RunResult = Vec<(Result<(Accuracy, StepNees), String>, f64)>;
@@ -234,9 +275,37 @@ fn run_filters(
         }
         let start = Instant::now();
         let result = (|| -> Result<(Accuracy, StepNees)> {
-            let mut f = make_filter(model, name, opts, schedules)?;
             let mut acc = Accuracy::new(n);
             let mut per_step = StepNees::new(model.steps);
+            let mut score = |t: usize, x_hat: &[f64], p_hat: &[f64]| {
+                if t < opts.burn_in {
+                    return;
+                }
+                let (sum, terms, infinite) = acc.nees_totals();
+                for i in 0..big_n {
+                    acc.add(
+                        &data.x[t][i * n..(i + 1) * n],
+                        &x_hat[i * n..(i + 1) * n],
+                        &p_hat[i * n * n..(i + 1) * n * n],
+                    );
+                }
+                let (sum_now, terms_now, infinite_now) = acc.nees_totals();
+                per_step.sum[t] = sum_now - sum;
+                per_step.terms[t] = terms_now - terms;
+                per_step.infinite[t] = infinite_now - infinite;
+            };
+            if is_smoother(name) {
+                let mut s = make_smoother(model, name, opts)?;
+                for t in 0..data.y.len() {
+                    s.step(&data.y[t], &data.u[t])?;
+                }
+                let smoothed = s.finish()?;
+                for t in 0..data.y.len() {
+                    score(t, &smoothed.x[t], &smoothed.p[t]);
+                }
+                return Ok((acc, per_step));
+            }
+            let mut f = make_filter(model, name, opts, schedules)?;
             let ys = if *name == "centralized-known" {
                 &data.y_known
             } else {
@@ -244,24 +313,14 @@ fn run_filters(
             };
             for t in 0..ys.len() {
                 f.step(&ys[t], &data.u[t])?;
-                if t + 1 > opts.burn_in {
+                {
                     let (x_hat, p_hat) = f.filtered();
-                    let (sum, terms, infinite) = acc.nees_totals();
-                    for i in 0..big_n {
-                        acc.add(
-                            &data.x[t][i * n..(i + 1) * n],
-                            &x_hat[i * n..(i + 1) * n],
-                            &p_hat[i * n * n..(i + 1) * n * n],
-                        );
-                    }
-                    let (sum_now, terms_now, infinite_now) = acc.nees_totals();
-                    per_step.sum[t] = sum_now - sum;
-                    per_step.terms[t] = terms_now - terms;
-                    per_step.infinite[t] = infinite_now - infinite;
+                    score(t, x_hat, p_hat);
                 }
             }
             Ok((acc, per_step))
         })();
+
         out.push((
             result.map_err(|e| format!("{e}")),
             start.elapsed().as_secs_f64(),
@@ -289,7 +348,13 @@ pub fn evaluate(
     }
     let selected: Vec<bool> = FILTERS
         .iter()
-        .map(|f| opts.filters.is_empty() || opts.filters.iter().any(|g| g == f))
+        .map(|f| {
+            if opts.filters.is_empty() {
+                opts.smooth || !is_smoother(f)
+            } else {
+                opts.filters.iter().any(|g| g == f)
+            }
+        })
         .collect();
     // A filter that cannot be built for this model (too large, G22 singular) is skipped.
     let none = Schedules::default();
@@ -300,9 +365,12 @@ pub fn evaluate(
             if !chosen {
                 return Some("not selected".to_string());
             }
-            make_filter(model, name, &opts, &none)
-                .err()
-                .map(|e| format!("{e}"))
+            if is_smoother(name) {
+                make_smoother(model, name, &opts).err()
+            } else {
+                make_filter(model, name, &opts, &none).err()
+            }
+            .map(|e| format!("{e}"))
         })
         .collect();
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();
@@ -362,6 +430,7 @@ pub fn evaluate(
         .map(|k| skipped[k].is_none().then(|| sums[k].report()))
         .collect();
     let reference = reports[REFERENCE].as_ref().map(|r| r.rmse_overall);
+    let smoother_reference = reports[SMOOTHER_REFERENCE].as_ref().map(|r| r.rmse_overall);
     let filters = FILTERS
         .iter()
         .enumerate()
@@ -370,8 +439,19 @@ pub fn evaluate(
             name,
             description: describe(name),
             skipped: skipped[k].clone(),
-            rmse_ratio: match (&reports[k], reference) {
+            rmse_ratio: match (
+                &reports[k],
+                if is_smoother(name) {
+                    smoother_reference
+                } else {
+                    reference
+                },
+            ) {
                 (Some(r), Some(c)) => Some(r.rmse_overall / c),
+                _ => None,
+            },
+            rmse_ratio_to_filter: match (&reports[k], reference) {
+                (Some(r), Some(c)) if is_smoother(name) => Some(r.rmse_overall / c),
                 _ => None,
             },
             accuracy: reports[k].clone(),
@@ -413,7 +493,7 @@ impl Evaluation {
             .iter()
             .find_map(|f| f.accuracy.as_ref())
             .map_or(0, |a| a.rmse.len());
-        s += &format!("{:<18} {:>10}", "filter", "RMSE");
+        s += &format!("{:<20} {:>10}", "filter", "RMSE");
         for k in 1..=n {
             s += &format!(" {:>10}", format!("RMSE x{k}"));
         }
@@ -431,7 +511,7 @@ impl Evaluation {
                             f.name
                         ));
                     }
-                    s += &format!("{:<18} {:>10.4e}", f.name, a.rmse_overall);
+                    s += &format!("{:<20} {:>10.4e}", f.name, a.rmse_overall);
                     for r in &a.rmse {
                         s += &format!(" {r:>10.4e}");
                     }
@@ -451,15 +531,26 @@ impl Evaluation {
                     );
                 }
                 (None, Some(why)) => {
-                    s += &format!("{:<18} skipped (see note)\n", f.name);
+                    s += &format!("{:<20} skipped (see note)\n", f.name);
                     notes.push(format!("{}: {why}", f.name));
                 }
                 (None, None) => {}
             }
         }
         s += "\n";
+        let smoother_ratios: Vec<String> = self
+            .filters
+            .iter()
+            .filter_map(|f| f.rmse_ratio_to_filter.map(|r| format!("{} {r:.4}", f.name)))
+            .collect();
+        if !smoother_ratios.is_empty() {
+            s += &format!(
+                "smoothers: \"/ central\" is to centralized-smoother; RMSE / centralized filter: {}\n\n",
+                smoother_ratios.join(", ")
+            );
+        }
         for f in &self.filters {
-            s += &format!("{:<18} {}\n", f.name, f.description);
+            s += &format!("{:<20} {}\n", f.name, f.description);
         }
         for note in notes {
             s += &format!("note: {note}\n");

@@ -73,6 +73,35 @@ fn same_results_with_one_and_two_threads() {
     }
 }
 
+/// `--smooth` adds the three smoother rows, each with its ratio to the centralized smoother
+/// and to the centralized filter; smoothing beats filtering.
+#[test]
+fn smooth_adds_the_smoother_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("eval.json");
+    Command::cargo_bin("sisfilt")
+        .unwrap()
+        .arg("evaluate")
+        .arg(configs().join("paper.toml"))
+        .args(["--runs", "4", "--smooth", "--out"])
+        .arg(&out)
+        .assert()
+        .success();
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
+    let filters = v["filters"].as_array().unwrap();
+    assert_eq!(filters.len(), 9);
+    for name in [
+        "distributed-smoother",
+        "joint-smoother",
+        "centralized-smoother",
+    ] {
+        let f = filters.iter().find(|f| f["name"] == name).unwrap();
+        assert!(f["rmse_ratio"].as_f64().is_some(), "{name}");
+        assert!(f["rmse_ratio_to_filter"].as_f64().unwrap() < 1.0, "{name}");
+    }
+}
+
 #[test]
 fn table_lists_filters_and_notes_skipped_ones() {
     let out = Command::cargo_bin("sisfilt")
@@ -93,7 +122,12 @@ fn table_lists_filters_and_notes_skipped_ones() {
         assert!(stdout.contains(name), "{stdout}");
     }
     // The platoon has G22 = 0, so the paper's transfer solver cannot run: skipped with a note.
-    assert!(stdout.contains("distributed-paper  skipped"), "{stdout}");
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.starts_with("distributed-paper ") && l.contains("skipped")),
+        "{stdout}"
+    );
     assert!(stdout.contains("note: distributed-paper"), "{stdout}");
 
     // Above the size limit the centralized filters are skipped, with a note.

@@ -267,6 +267,7 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
             max_lifted: 1000,
             band: 2,
             filters: vec!["distributed".into(), "joint".into(), "centralized".into()],
+            smooth: false,
         };
         let ev = evaluate(&model, name, opts, || {}).unwrap();
         let get = |f: &str| {

@@ -313,6 +313,7 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         max_lifted: 1000,
         band: 2,
         filters: vec![],
+        smooth: false,
     };
     let ev = evaluate(&model, "platoon", opts, || {}).unwrap();
     let ratio = |name: &str| {
