@@ -1,5 +1,6 @@
 //! The `sisfilt` binary: parses the command line, runs the command, reports errors (SPEC §7).
 
+use std::io::Write;
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -16,7 +17,7 @@ fn main() -> ExitCode {
             e.exit()
         }
         Err(e) => {
-            eprintln!("error: {}", usage_error_line(&e));
+            let _ = writeln!(std::io::stderr(), "error: {}", usage_error_line(&e));
             return ExitCode::from(u8::try_from(e.exit_code()).unwrap_or(2));
         }
     };
@@ -32,7 +33,8 @@ fn main() -> ExitCode {
             if broken_pipe {
                 return ExitCode::SUCCESS;
             }
-            eprintln!("error: {err:#}");
+            // A closed standard error must not turn the error into a panic.
+            let _ = writeln!(std::io::stderr(), "error: {err:#}");
             let code = err
                 .chain()
                 .find_map(|c| c.downcast_ref::<sisfilt::Error>())

@@ -418,10 +418,20 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
             } else {
                 String::new()
             };
+            let what = if self.t_pred[i * n2..(i + 1) * n2]
+                .iter()
+                .all(|v| v.is_finite())
+            {
+                "the predicted estimate x̂(t+1|t)"
+            } else {
+                "the predicted covariance T(t+1)"
+            };
             return Err(Error::Numerical {
                 t,
                 i: i + 1,
-                msg: format!("the estimate is no longer finite{hint}"),
+                msg: format!(
+                    "{what} is no longer finite: it overflowed the range of f64 (about 1e308){hint}"
+                ),
             });
         }
         self.t += 1;

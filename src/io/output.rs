@@ -51,7 +51,21 @@ impl Output {
             .prefix(".sisfilt-")
             .suffix(".tmp")
             .tempfile_in(dir)
-            .map_err(|e| Error::io(dest, e))?;
+            .map_err(|e| {
+                // tempfile's message names its random file; say which folder refused instead.
+                let text = e.to_string();
+                let cause = text.split(" at path ").next().unwrap_or_default();
+                Error::io(
+                    dest,
+                    std::io::Error::new(
+                        e.kind(),
+                        format!(
+                            "cannot create a file in the folder {}: {cause}",
+                            dir.display()
+                        ),
+                    ),
+                )
+            })?;
         Ok(Output::File {
             file: BufWriter::with_capacity(BUFFER, tmp),
             dest: dest.to_path_buf(),
