@@ -6,7 +6,17 @@ use std::process::ExitCode;
 use clap::Parser;
 use clap::error::ErrorKind;
 
+/// Exit code of a run stopped by SIGINT, SIGTERM or SIGHUP (the shell's 128 + SIGINT).
+const INTERRUPTED: i32 = 130;
+
 fn main() -> ExitCode {
+    // Ctrl-C or a kill: remove the temporary output files and leave the previous outputs
+    // as they were. The lock returned is held until the process is gone, so nothing more is
+    // committed in the meantime.
+    let _ = ctrlc::set_handler(|| {
+        let _guard = sisfilt::io::remove_pending_files();
+        std::process::exit(INTERRUPTED);
+    });
     let cli = match sisfilt::cli::Cli::try_parse() {
         Ok(cli) => cli,
         // --help, --version, and the help shown when no command is given.

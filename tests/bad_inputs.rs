@@ -372,20 +372,14 @@ fn estimate_with_a_closed_standard_error_still_writes_its_output() {
     assert_eq!(text.lines().count(), 6 * 150 + 1);
 }
 
-/// A run killed in the middle (SIGKILL: no chance to clean up) leaves the previous output
-/// byte for byte as it was: `estimate` writes into a temporary file in the same folder and
-/// renames it over `--out` only at the end. The measurements come through a pipe that the
-/// test feeds slowly, so the kill lands for certain while the run is under way.
-#[test]
-fn killed_estimate_leaves_the_previous_output_intact() {
+/// Starts `estimate --meas - --out out.csv` in `dir` (which holds `config.toml` and a previous
+/// `out.csv`), feeds it 20 000 steps of measurements through a pipe that stays open, and
+/// returns once the run is under way (its temporary file exists): it is then waiting for more
+/// input, so a signal sent now lands for certain in the middle of the run.
+fn start_estimate_on_an_open_pipe(dir: &Path) -> (std::process::Child, std::process::ChildStdin) {
     use std::io::Write;
-    let tmp = tempfile::tempdir().unwrap();
-    let case = catalogue_dir().join("055_csv_missing_row");
-    std::fs::copy(case.join("config.toml"), tmp.path().join("config.toml")).unwrap();
-    let previous = b"t,i,x1,x2,P1_1,P1_2,P2_2\nthe previous run\n";
-    std::fs::write(tmp.path().join("out.csv"), previous).unwrap();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_sisfilt"))
-        .current_dir(tmp.path())
+        .current_dir(dir)
         .args(["estimate", "--config", "config.toml", "--meas", "-"])
         .args(["--out", "out.csv"])
         .stdin(Stdio::piped())
@@ -402,39 +396,79 @@ fn killed_estimate_leaves_the_previous_output_intact() {
     }
     stdin.write_all(rows.as_bytes()).unwrap();
     stdin.flush().unwrap();
-    // The run is under way once its temporary file exists (created after the header is read).
-    let temp_files = || -> Vec<PathBuf> {
-        std::fs::read_dir(tmp.path())
-            .unwrap()
-            .map(|e| e.unwrap().path())
-            .filter(|p| {
-                p.file_name()
-                    .unwrap()
-                    .to_string_lossy()
-                    .starts_with(".sisfilt-")
-            })
-            .collect()
-    };
     let start = std::time::Instant::now();
-    while temp_files().is_empty() {
+    while temp_files(dir).is_empty() {
         assert!(
             start.elapsed() < Duration::from_secs(60),
             "no temporary file appeared"
         );
         std::thread::sleep(Duration::from_millis(10));
     }
+    (child, stdin)
+}
+
+/// The hidden temporary output files (`.sisfilt-*`) in `dir`.
+fn temp_files(dir: &Path) -> Vec<PathBuf> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| {
+            p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .starts_with(".sisfilt-")
+        })
+        .collect()
+}
+
+/// A folder with the config of a 3-subsystem chain and the output of a previous run.
+fn folder_with_previous_output() -> (tempfile::TempDir, &'static [u8]) {
+    let tmp = tempfile::tempdir().unwrap();
+    let case = catalogue_dir().join("055_csv_missing_row");
+    std::fs::copy(case.join("config.toml"), tmp.path().join("config.toml")).unwrap();
+    let previous: &[u8] = b"t,i,x1,x2,P1_1,P1_2,P2_2\nthe previous run\n";
+    std::fs::write(tmp.path().join("out.csv"), previous).unwrap();
+    (tmp, previous)
+}
+
+/// A run killed in the middle with SIGKILL (no chance to clean up) leaves the previous output
+/// byte for byte as it was: `estimate` writes into a temporary file in the same folder and
+/// renames it over `--out` only at the end. The temporary file stays behind, hidden and
+/// recognisable by its name.
+#[test]
+fn estimate_killed_with_sigkill_leaves_the_previous_output_intact() {
+    let (tmp, previous) = folder_with_previous_output();
+    let (mut child, stdin) = start_estimate_on_an_open_pipe(tmp.path());
     child.kill().unwrap(); // SIGKILL
     let status = child.wait().unwrap();
-    assert!(!status.success());
     drop(stdin);
-    assert_eq!(
-        std::fs::read(tmp.path().join("out.csv")).unwrap(),
-        previous,
-        "the previous output was touched"
-    );
-    // SIGKILL leaves the temporary file behind (nothing can remove it); it is hidden and named
-    // so that it is recognisable, and never mistaken for a result.
-    for p in temp_files() {
+    assert!(!status.success());
+    assert_eq!(std::fs::read(tmp.path().join("out.csv")).unwrap(), previous);
+    for p in temp_files(tmp.path()) {
         assert!(p.to_string_lossy().ends_with(".tmp"), "{}", p.display());
+    }
+}
+
+/// SIGINT (Ctrl-C) and SIGTERM in the middle of a run: the previous output is intact, the
+/// temporary file is removed, and the exit code is 130.
+#[test]
+fn estimate_interrupted_by_sigint_or_sigterm_cleans_up_and_keeps_the_previous_output() {
+    for signal in ["INT", "TERM"] {
+        let (tmp, previous) = folder_with_previous_output();
+        let (child, stdin) = start_estimate_on_an_open_pipe(tmp.path());
+        let sent = std::process::Command::new("kill")
+            .args([format!("-{signal}"), child.id().to_string()])
+            .status()
+            .expect("run kill");
+        assert!(sent.success());
+        let output = child.wait_with_output().unwrap();
+        drop(stdin);
+        assert_eq!(output.status.code(), Some(130), "SIG{signal}: {output:?}");
+        assert_eq!(
+            std::fs::read(tmp.path().join("out.csv")).unwrap(),
+            previous,
+            "SIG{signal}"
+        );
+        assert_eq!(temp_files(tmp.path()), Vec::<PathBuf>::new(), "SIG{signal}");
     }
 }
