@@ -1,6 +1,7 @@
 //! The commands behind the command line: each reads its inputs, runs the library and writes
 //! its outputs. Warnings go to standard error through [`warn`]; data to standard output or files.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
@@ -36,9 +37,20 @@ const ESTIMATE_POWER_STEPS: usize = 400;
 /// Above this many lifted states `estimate` skips its stability check (`check` still does it).
 const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
 
-/// Prints a warning line on standard error (SPEC §7).
+/// Prints a warning line on standard error (SPEC §7). A standard error that cannot be
+/// written to (a closed pipe) loses the warning but does not stop the run.
 pub fn warn(msg: impl std::fmt::Display) {
-    eprintln!("warning: {msg}");
+    let _ = writeln!(std::io::stderr(), "warning: {msg}");
+}
+
+/// Writes `text` and a line break to standard output; a closed pipe comes back as an
+/// [`Error::Io`] of kind `BrokenPipe`, which the binary ends quietly with exit 0
+/// (`println!` would panic instead).
+fn print_stdout(text: &str) -> Result<()> {
+    let mut out = Output::create(Path::new("-"))?;
+    writeln!(out, "{text}").map_err(|e| Error::io("<stdout>", e))?;
+    out.commit()?;
+    Ok(())
 }
 
 /// Runs one command.
@@ -155,9 +167,7 @@ fn check(path: &Path) -> Result<()> {
         human_bytes(DEFAULT_MAX_MEMORY),
     ));
     // Print only once everything passed, so that a bad config prints nothing on stdout.
-    for line in report {
-        println!("{line}");
-    }
+    print_stdout(&report.join("\n"))?;
     for w in warnings {
         warn(w);
     }
@@ -170,7 +180,7 @@ fn simulate_command(args: &SimulateArgs) -> Result<()> {
     for w in model.windows().iter().filter(|w| w.first <= model.steps) {
         ChainSolver::new(&model, w.first)?;
     }
-    let mut inputs = InputStream::open(&model, None)?;
+    let inputs = InputStream::open(&model, None)?;
     let out_dir = &args.out;
     if out_dir.exists() && !out_dir.is_dir() {
         return Err(Error::Usage(format!(
@@ -179,12 +189,39 @@ fn simulate_command(args: &SimulateArgs) -> Result<()> {
         ))
         .into());
     }
+    // The folders this run creates, innermost first: a failed run removes them again.
+    let created: Vec<PathBuf> = out_dir
+        .ancestors()
+        .take_while(|a| !a.as_os_str().is_empty() && !a.exists())
+        .map(Path::to_path_buf)
+        .collect();
     std::fs::create_dir_all(out_dir).map_err(|e| {
         Error::Usage(format!(
             "--out {}: cannot create the folder: {e}",
             out_dir.display()
         ))
     })?;
+    let result = write_simulation(args, &src, &model, inputs);
+    if result.is_err() {
+        for dir in &created {
+            // Fails, and so keeps the folder, if anything else appeared in it meanwhile.
+            if std::fs::remove_dir(dir).is_err() {
+                break;
+            }
+        }
+    }
+    result
+}
+
+/// Simulates and writes the files of `simulate` into the existing folder `args.out`; each file
+/// appears (atomically) only once every file is complete.
+fn write_simulation(
+    args: &SimulateArgs,
+    src: &ConfigSource,
+    model: &Model,
+    mut inputs: InputStream,
+) -> Result<()> {
+    let out_dir = &args.out;
     let seed = args.seed.unwrap_or(model.seed);
     let d = model.dims;
     let file = |name: &str| -> Result<Output> { Ok(Output::create(&out_dir.join(name))?) };
@@ -210,7 +247,7 @@ fn simulate_command(args: &SimulateArgs) -> Result<()> {
     let mut record_out = file(RunRecord::FILE)?;
 
     let mut y_row = vec![0.0; d.q];
-    simulate(&model, model.steps, seed, &mut inputs, |step| {
+    simulate(model, model.steps, seed, &mut inputs, |step| {
         for i in 0..model.subsystems {
             let gamma = step.gamma[i];
             truth
@@ -694,7 +731,7 @@ fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
 
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
 fn report_accuracy(r: &AccuracyReport) {
-    eprintln!("accuracy: {}", r.summary());
+    let _ = writeln!(std::io::stderr(), "accuracy: {}", r.summary());
     if r.nees_left_out > 0 {
         warn(format!(
             "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
@@ -732,7 +769,6 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
             bar.inc(1)
         })?;
     bar.finish_and_clear();
-    print!("{}", result.table());
     for f in &result.filters {
         if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
             warn(format!(
@@ -746,8 +782,10 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
         serde_json::to_writer_pretty(&mut *out, &result).context("writing the evaluation")?;
         std::io::Write::write_all(out, b"\n").map_err(|e| Error::io(&name, e))?;
     }
+    // The file first: a reader of the table that stops early must not cost the JSON.
     if let Some(out) = out {
         out.commit()?;
     }
+    print_stdout(result.table().trim_end_matches('\n'))?;
     Ok(())
 }

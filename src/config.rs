@@ -68,11 +68,45 @@ pub struct RawDropout {
 }
 
 /// `p = 0.8` or `p = [0.8, 0.9, …]`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize)]
 #[serde(untagged)]
 pub enum RawProbability {
     All(f64),
     PerSubsystem(Vec<f64>),
+}
+
+/// By hand rather than `#[serde(untagged)]`, whose error for anything else ("data did not
+/// match any variant …") does not say what was expected.
+impl<'de> Deserialize<'de> for RawProbability {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = RawProbability;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a probability or a list of probabilities, one per subsystem")
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Self::Value, E> {
+                Ok(RawProbability::All(v))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Self::Value, E> {
+                Ok(RawProbability::All(v as f64))
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<Self::Value, E> {
+                Ok(RawProbability::All(v as f64))
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut ps = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(1 << 16));
+                while let Some(p) = seq.next_element::<f64>()? {
+                    ps.push(p);
+                }
+                Ok(RawProbability::PerSubsystem(ps))
+            }
+        }
+        de.deserialize_any(Visitor)
+    }
 }
 
 /// `[initial]`: `x(1,i) ~ N(mean, cov)`.

@@ -67,6 +67,7 @@ impl Error {
                         | std::io::ErrorKind::AlreadyExists
                         | std::io::ErrorKind::InvalidInput
                         | std::io::ErrorKind::InvalidData
+                        | std::io::ErrorKind::ReadOnlyFilesystem
                 ) {
                     2
                 } else {

@@ -1,11 +1,22 @@
 //! The `sisfilt` binary: parses the command line, runs the command, reports errors (SPEC §7).
 
+use std::io::Write;
 use std::process::ExitCode;
 
 use clap::Parser;
 use clap::error::ErrorKind;
 
+/// Exit code of a run stopped by SIGINT, SIGTERM or SIGHUP (the shell's 128 + SIGINT).
+const INTERRUPTED: i32 = 130;
+
 fn main() -> ExitCode {
+    // Ctrl-C or a kill: remove the temporary output files and leave the previous outputs
+    // as they were. The lock returned is held until the process is gone, so nothing more is
+    // committed in the meantime.
+    let _ = ctrlc::set_handler(|| {
+        let _guard = sisfilt::io::remove_pending_files();
+        std::process::exit(INTERRUPTED);
+    });
     let cli = match sisfilt::cli::Cli::try_parse() {
         Ok(cli) => cli,
         // --help, --version, and the help shown when no command is given.
@@ -16,7 +27,7 @@ fn main() -> ExitCode {
             e.exit()
         }
         Err(e) => {
-            eprintln!("error: {}", usage_error_line(&e));
+            let _ = writeln!(std::io::stderr(), "error: {}", usage_error_line(&e));
             return ExitCode::from(u8::try_from(e.exit_code()).unwrap_or(2));
         }
     };
@@ -32,7 +43,8 @@ fn main() -> ExitCode {
             if broken_pipe {
                 return ExitCode::SUCCESS;
             }
-            eprintln!("error: {err:#}");
+            // A closed standard error must not turn the error into a panic.
+            let _ = writeln!(std::io::stderr(), "error: {err:#}");
             let code = err
                 .chain()
                 .find_map(|c| c.downcast_ref::<sisfilt::Error>())

@@ -1,4 +1,5 @@
-//! The catalogue of bad inputs (`tests/bad_inputs/`, SPEC §6–§7) and the broken-pipe check.
+//! The catalogue of bad inputs (`tests/bad_inputs/`, SPEC §6–§7), and what happens when a run
+//! is cut short: a reader that closes its pipe early, a run killed in the middle.
 //!
 //! Each folder `NNN_name/` of the catalogue is one case: the files it needs (`config.toml`,
 //! `measurements.csv`, …) and a `case.toml` saying how to run the binary and what it must do:
@@ -6,7 +7,7 @@
 //! ```toml
 //! # what is wrong (a comment)
 //! args = ["estimate", "--config", "config.toml", "--meas", "measurements.csv", "--out", "out.csv"]
-//! exit = 2
+//! exit = 2                               # 1 for a valid input on which the maths breaks down
 //! message = "measurements.csv: line 5"   # a fragment of the error line
 //! contains = ["--dropouts known"]        # optional: more fragments
 //! stdin = "measurements.csv"             # optional: a file of the case fed to standard input
@@ -187,7 +188,7 @@ fn run_case(dir: &Path) -> Result<(), Vec<String>> {
 }
 
 #[test]
-fn every_bad_input_is_one_error_line_exit_2_and_leaves_files_alone() {
+fn every_bad_input_is_one_error_line_with_its_exit_code_and_leaves_files_alone() {
     let dirs = case_dirs();
     assert!(
         dirs.len() >= MIN_CASES,
@@ -278,5 +279,196 @@ fn estimate_into_a_pipe_closed_early_exits_0_quietly() {
             head.starts_with(if format == "csv" { "t,i,x1" } else { "{" }),
             "{head:?}"
         );
+    }
+}
+
+/// Spawns `sisfilt args` with standard output and standard error piped; the caller closes the
+/// ends it wants closed right away, long before the child has parsed its config and written
+/// anything (it has only just been exec'd when `spawn` returns).
+fn spawn(args: &[&std::ffi::OsStr]) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_sisfilt"))
+        .args(args)
+        .env_remove("RUST_BACKTRACE")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn sisfilt")
+}
+
+fn assert_quiet_success(what: &str, output: &std::process::Output) {
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "{what}: {:?}, stderr {stderr:?}",
+        output.status
+    );
+    assert!(
+        stderr.lines().all(|l| l.starts_with("warning: ")),
+        "{what}: {stderr:?}"
+    );
+}
+
+/// `check` and `evaluate` print to standard output too: a reader that is already gone when
+/// they print (`sisfilt check c.toml | true`) ends them quietly with exit 0, and `evaluate`
+/// still writes its `--out` file.
+#[test]
+fn check_and_evaluate_into_a_closed_pipe_exit_0_quietly() {
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let tmp = tempfile::tempdir().unwrap();
+    let json = tmp.path().join("eval.json");
+    let (rod, paper) = (configs.join("heat_rod.toml"), configs.join("paper.toml"));
+    let runs: [Vec<&std::ffi::OsStr>; 2] = [
+        vec!["check".as_ref(), rod.as_os_str()],
+        vec![
+            "evaluate".as_ref(),
+            paper.as_os_str(),
+            "--runs".as_ref(),
+            "2".as_ref(),
+            "--out".as_ref(),
+            json.as_os_str(),
+        ],
+    ];
+    for args in runs {
+        let mut child = spawn(&args);
+        drop(child.stdout.take());
+        let output = child.wait_with_output().unwrap();
+        assert_quiet_success(&format!("{args:?}"), &output);
+    }
+    let text = std::fs::read_to_string(&json).expect("evaluate wrote its JSON");
+    let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert!(value.get("filters").is_some(), "{text}");
+}
+
+/// A closed standard error (`2>&-` into a dead pipe) loses the warnings and the accuracy line
+/// but not the run: exit 0 and the estimates written (`eprintln!` would panic, exit 101).
+#[test]
+fn estimate_with_a_closed_standard_error_still_writes_its_output() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/paper.toml");
+    let run = tmp.path().join("run");
+    sisfilt()
+        .arg("simulate")
+        .arg(&config)
+        .arg("--out")
+        .arg(&run)
+        .assert()
+        .success();
+    let out = tmp.path().join("est.csv");
+    let mut child = spawn(&[
+        "estimate".as_ref(),
+        "--meas".as_ref(),
+        run.join("measurements.csv").as_os_str(),
+        "--truth".as_ref(),
+        run.join("truth.csv").as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    drop(child.stderr.take());
+    let output = child.wait_with_output().unwrap();
+    assert!(output.status.success(), "{:?}", output.status);
+    let text = std::fs::read_to_string(&out).unwrap();
+    // paper.toml: 6 subsystems × 150 steps, and the header.
+    assert_eq!(text.lines().count(), 6 * 150 + 1);
+}
+
+/// Starts `estimate --meas - --out out.csv` in `dir` (which holds `config.toml` and a previous
+/// `out.csv`), feeds it 20 000 steps of measurements through a pipe that stays open, and
+/// returns once the run is under way (its temporary file exists): it is then waiting for more
+/// input, so a signal sent now lands for certain in the middle of the run.
+fn start_estimate_on_an_open_pipe(dir: &Path) -> (std::process::Child, std::process::ChildStdin) {
+    use std::io::Write;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_sisfilt"))
+        .current_dir(dir)
+        .args(["estimate", "--config", "config.toml", "--meas", "-"])
+        .args(["--out", "out.csv"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn sisfilt");
+    let mut stdin = child.stdin.take().unwrap();
+    let mut rows = String::from("t,i,y1\n");
+    for t in 1..=20_000 {
+        for i in 1..=3 {
+            rows += &format!("{t},{i},{}\n", 0.01 * (t % 17) as f64 - 0.05 * i as f64);
+        }
+    }
+    stdin.write_all(rows.as_bytes()).unwrap();
+    stdin.flush().unwrap();
+    let start = std::time::Instant::now();
+    while temp_files(dir).is_empty() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no temporary file appeared"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    (child, stdin)
+}
+
+/// The hidden temporary output files (`.sisfilt-*`) in `dir`.
+fn temp_files(dir: &Path) -> Vec<PathBuf> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| {
+            p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .starts_with(".sisfilt-")
+        })
+        .collect()
+}
+
+/// A folder with the config of a 3-subsystem chain and the output of a previous run.
+fn folder_with_previous_output() -> (tempfile::TempDir, &'static [u8]) {
+    let tmp = tempfile::tempdir().unwrap();
+    let case = catalogue_dir().join("055_csv_missing_row");
+    std::fs::copy(case.join("config.toml"), tmp.path().join("config.toml")).unwrap();
+    let previous: &[u8] = b"t,i,x1,x2,P1_1,P1_2,P2_2\nthe previous run\n";
+    std::fs::write(tmp.path().join("out.csv"), previous).unwrap();
+    (tmp, previous)
+}
+
+/// A run killed in the middle with SIGKILL (no chance to clean up) leaves the previous output
+/// byte for byte as it was: `estimate` writes into a temporary file in the same folder and
+/// renames it over `--out` only at the end. The temporary file stays behind, hidden and
+/// recognisable by its name.
+#[test]
+fn estimate_killed_with_sigkill_leaves_the_previous_output_intact() {
+    let (tmp, previous) = folder_with_previous_output();
+    let (mut child, stdin) = start_estimate_on_an_open_pipe(tmp.path());
+    child.kill().unwrap(); // SIGKILL
+    let status = child.wait().unwrap();
+    drop(stdin);
+    assert!(!status.success());
+    assert_eq!(std::fs::read(tmp.path().join("out.csv")).unwrap(), previous);
+    for p in temp_files(tmp.path()) {
+        assert!(p.to_string_lossy().ends_with(".tmp"), "{}", p.display());
+    }
+}
+
+/// SIGINT (Ctrl-C) and SIGTERM in the middle of a run: the previous output is intact, the
+/// temporary file is removed, and the exit code is 130.
+#[test]
+fn estimate_interrupted_by_sigint_or_sigterm_cleans_up_and_keeps_the_previous_output() {
+    for signal in ["INT", "TERM"] {
+        let (tmp, previous) = folder_with_previous_output();
+        let (child, stdin) = start_estimate_on_an_open_pipe(tmp.path());
+        let sent = std::process::Command::new("kill")
+            .args([format!("-{signal}"), child.id().to_string()])
+            .status()
+            .expect("run kill");
+        assert!(sent.success());
+        let output = child.wait_with_output().unwrap();
+        drop(stdin);
+        assert_eq!(output.status.code(), Some(130), "SIG{signal}: {output:?}");
+        assert_eq!(
+            std::fs::read(tmp.path().join("out.csv")).unwrap(),
+            previous,
+            "SIG{signal}"
+        );
+        assert_eq!(temp_files(tmp.path()), Vec::<PathBuf>::new(), "SIG{signal}");
     }
 }

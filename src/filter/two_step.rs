@@ -617,7 +617,22 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
         }
         // A blown-up step 1 (e.g. the transfer solver on a long chain) must not pass as data.
         if let Some(i) = failed {
-            return Err(self.numerical(t, i, "the estimate is no longer finite"));
+            let n2 = n * n;
+            let what = if self.t_pred[i * n2..(i + 1) * n2]
+                .iter()
+                .all(|v| v.is_finite())
+            {
+                "the predicted estimate x̂(t+1|t)"
+            } else {
+                "the predicted covariance T(t+1)"
+            };
+            return Err(self.numerical(
+                t,
+                i,
+                &format!(
+                    "{what} is no longer finite: it overflowed the range of f64 (about 1e308)"
+                ),
+            ));
         }
         self.t += 1;
         Ok(())

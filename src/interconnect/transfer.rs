@@ -174,7 +174,9 @@ impl TransferSolver {
                 msg: "the matrix K of (P16) is singular: the interconnection equations have no unique solution"
                     .into(),
             })?;
-        self.k_lu = Some(k_mat.lu());
+        // With minus = 0 there is no v⁻ to close the recursion with: K is 0 × 0, and
+        // nalgebra's LU solve cannot take an empty system.
+        self.k_lu = (m > 0).then(|| k_mat.lu());
         // Rounding errors of size ε are amplified by the transfer products and by K⁻¹ (SPEC §2).
         // Against the banded solve on random chains (G entries ≤ 0.3, N = 3..50) this tracked
         // the actual relative error within a factor 1–20 (e.g. 3e−2 for 1.2e−2 at N = 20).

@@ -9,5 +9,5 @@ pub mod run_record;
 
 pub use csv_in::{StepLayout, StepReader};
 pub use csv_out::CsvWriter;
-pub use output::Output;
+pub use output::{Output, remove_pending_files};
 pub use run_record::RunRecord;

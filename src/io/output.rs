@@ -3,13 +3,53 @@
 //! or an interrupted run never leaves a half-written file and keeps the previous one intact.
 //! A destination that exists and is not a regular file (`/dev/null`, a named pipe, a terminal)
 //! is written in place: renaming over it would replace the device or pipe with a file.
+//!
+//! The temporary files still open are listed in a registry, so that a run stopped by a signal
+//! can remove them ([`remove_pending_files`]; the binary calls it on SIGINT, SIGTERM and
+//! SIGHUP). Only SIGKILL leaves one behind: `.sisfilt-XXXXXX.tmp` beside the target.
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
 
 use crate::error::{Error, Result};
 
 const BUFFER: usize = 1 << 20;
+
+/// The temporary files of every [`Output::File`] not yet committed or dropped.
+static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn pending() -> MutexGuard<'static, Vec<PathBuf>> {
+    // A panic while holding the lock cannot leave the list inconsistent (push and retain).
+    PENDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Removes every temporary output file still pending and returns with the registry locked,
+/// so that no output can be committed afterwards: for a signal handler that then ends the
+/// process. The previous outputs stay as they were.
+pub fn remove_pending_files() -> MutexGuard<'static, Vec<PathBuf>> {
+    let mut list = pending();
+    for path in list.drain(..) {
+        let _ = std::fs::remove_file(path);
+    }
+    list
+}
+
+/// Keeps a temporary file in the registry for as long as it lives.
+pub struct Registration(PathBuf);
+
+impl Registration {
+    fn new(path: &Path) -> Self {
+        pending().push(path.to_path_buf());
+        Registration(path.to_path_buf())
+    }
+}
+
+impl Drop for Registration {
+    fn drop(&mut self) {
+        pending().retain(|p| p != &self.0);
+    }
+}
 
 /// Where a command writes one output.
 pub enum Output {
@@ -17,6 +57,7 @@ pub enum Output {
     File {
         file: BufWriter<tempfile::NamedTempFile>,
         dest: PathBuf,
+        registration: Registration,
     },
     /// An existing destination that is not a regular file, opened for writing as it is.
     Special {
@@ -69,8 +110,23 @@ impl Output {
             .prefix(".sisfilt-")
             .suffix(".tmp")
             .tempfile_in(dir)
-            .map_err(|e| Error::io(dest, e))?;
+            .map_err(|e| {
+                // tempfile's message names its random file; say which folder refused instead.
+                let text = e.to_string();
+                let cause = text.split(" at path ").next().unwrap_or_default();
+                Error::io(
+                    dest,
+                    std::io::Error::new(
+                        e.kind(),
+                        format!(
+                            "cannot create a file in the folder {}: {cause}",
+                            dir.display()
+                        ),
+                    ),
+                )
+            })?;
         Ok(Output::File {
+            registration: Registration::new(tmp.path()),
             file: BufWriter::with_capacity(BUFFER, tmp),
             dest: dest.to_path_buf(),
         })
@@ -88,7 +144,11 @@ impl Output {
     pub fn commit(self) -> Result<()> {
         match self {
             Output::Stdout(mut w) => w.finish().map_err(|e| Error::io("<stdout>", e)),
-            Output::File { file, dest } => {
+            Output::File {
+                file,
+                dest,
+                registration,
+            } => {
                 let tmp = file
                     .into_inner()
                     .map_err(|e| Error::io(&dest, e.into_error()))?;
@@ -102,7 +162,19 @@ impl Output {
                         std::fs::Permissions::from_mode(0o644),
                     );
                 }
-                tmp.persist(&dest).map_err(|e| Error::io(&dest, e.error))?;
+                // Under the registry's lock: a signal handler either removed the file before
+                // (and the rename fails) or sees it already gone from the list.
+                let mut list = pending();
+                if !list.contains(&registration.0) {
+                    return Err(Error::io(
+                        &dest,
+                        std::io::Error::new(std::io::ErrorKind::Interrupted, "interrupted"),
+                    ));
+                }
+                let persisted = tmp.persist(&dest);
+                list.retain(|p| p != &registration.0);
+                drop(list);
+                persisted.map_err(|e| Error::io(&dest, e.error))?;
                 Ok(())
             }
             Output::Special { mut file, dest } => file.flush().map_err(|e| Error::io(&dest, e)),
