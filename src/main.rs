@@ -4,6 +4,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use clap::error::ErrorKind;
+use sisfilt::messages;
 
 fn main() -> ExitCode {
     let cli = match sisfilt::cli::Cli::try_parse() {
@@ -16,12 +17,17 @@ fn main() -> ExitCode {
             e.exit()
         }
         Err(e) => {
-            eprintln!("error: {}", usage_error_line(&e));
+            messages::error(usage_error_line(&e));
             return ExitCode::from(u8::try_from(e.exit_code()).unwrap_or(2));
         }
     };
+    messages::set_verbosity(cli.verbosity());
+    let started = std::time::Instant::now();
     match sisfilt::commands::run(cli.command) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(()) => {
+            messages::info(format!("done in {:.3} s", started.elapsed().as_secs_f64()));
+            ExitCode::SUCCESS
+        }
         Err(err) => {
             let broken_pipe = err.chain().any(|c| {
                 c.downcast_ref::<std::io::Error>()
@@ -32,7 +38,7 @@ fn main() -> ExitCode {
             if broken_pipe {
                 return ExitCode::SUCCESS;
             }
-            eprintln!("error: {err:#}");
+            messages::error(format!("{err:#}"));
             let code = err
                 .chain()
                 .find_map(|c| c.downcast_ref::<sisfilt::Error>())
