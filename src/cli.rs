@@ -14,11 +14,17 @@ use crate::io::estimates::Format;
 #[derive(Debug, Parser)]
 #[command(name = "sisfilt", version, about, long_about = None)]
 pub struct Cli {
-    /// Print no warnings, notes or progress bars on standard error (errors are still printed).
-    #[arg(long, short, global = true, conflicts_with = "verbose")]
+    /// Print no warnings or progress bars on standard error (errors are still printed).
+    #[arg(
+        long,
+        short,
+        global = true,
+        conflicts_with = "verbose",
+        display_order = 1000
+    )]
     pub quiet: bool,
     /// Also print progress and timings on standard error (`info: ` lines).
-    #[arg(long, short, global = true)]
+    #[arg(long, short, global = true, display_order = 1000)]
     pub verbose: bool,
     #[command(subcommand)]
     pub command: Command,

@@ -348,7 +348,7 @@ impl Bars<'_> {
             .axis_desc_style(font(DESC_SIZE))
             .label_style(font(LABEL_SIZE))
             .x_label_formatter(&|v| fmt_tick(*v))
-            .light_line_style(WHITE)
+            .light_line_style(TRANSPARENT)
             .bold_line_style(GRID)
             .draw()?;
         let bar = 1.0 / (self.n as f64 + 1.0 + 1.3);
@@ -476,7 +476,7 @@ impl Dots<'_> {
             .axis_desc_style(font(DESC_SIZE))
             .label_style(font(LABEL_SIZE))
             .x_label_formatter(&|v| fmt_tick(*v))
-            .light_line_style(WHITE)
+            .light_line_style(TRANSPARENT)
             .bold_line_style(GRID)
             .draw()?;
         ch.draw_series(std::iter::once(PathElement::new(
@@ -551,7 +551,7 @@ fn nees_per_step_panel(area: &Area, filters: &[FilterDoc]) -> Result<()> {
         .label_style(font(LABEL_SIZE))
         .x_label_formatter(&|v| format!("{v:.0}"))
         .y_label_formatter(&|v| fmt_tick(*v))
-        .light_line_style(WHITE)
+        .light_line_style(TRANSPARENT)
         .bold_line_style(GRID)
         .draw()?;
     ch.draw_series(std::iter::once(PathElement::new(
@@ -730,7 +730,7 @@ where
         .label_style(font(LABEL_SIZE))
         .x_label_formatter(&|v| fmt_tick(*v))
         .y_label_formatter(&|v| fmt_tick(*v))
-        .light_line_style(WHITE)
+        .light_line_style(TRANSPARENT)
         .bold_line_style(GRID)
         .draw()?;
     if let Some(r) = reference {

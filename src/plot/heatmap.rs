@@ -300,12 +300,6 @@ pub fn render(map: &ErrorMap) -> Result<String> {
         } else {
             "Normalised estimation error"
         };
-        draw_centered(
-            &root,
-            &format!("{what} {quantity} along the chain ({})", map.estimates),
-            12,
-            TITLE_SIZE,
-        )?;
         let mut notes = Vec::new();
         if binned.bt > 1 || binned.bi > 1 {
             notes.push(format!(
@@ -319,9 +313,9 @@ pub fn render(map: &ErrorMap) -> Result<String> {
             notes.push("each cell: one (t, i)".into());
         }
         if !map.plain {
-            notes.push(
-                "σ² = reported variance; a consistent filter keeps 95 % of cells below 1.96".into(),
-            );
+            notes.push(format!(
+                "σ{k}² = P{k}_{k}, the reported variance: a consistent filter keeps 95 % of the (t, i) below 1.96"
+            ));
         }
         let infinite = map.values.iter().filter(|v| v.is_infinite()).count();
         if infinite > 0 {
@@ -329,11 +323,18 @@ pub fn render(map: &ErrorMap) -> Result<String> {
                 "{infinite} terms with a zero σ and a non-zero error"
             ));
         }
-        draw_centered(&root, &notes.join("; "), 42, LABEL_SIZE)?;
-
         let (main, bar) = root.split_horizontally(WIDTH - BAR_WIDTH);
+        draw_centered(
+            &main,
+            &format!("{what} {quantity} along the chain ({})", map.estimates),
+            12,
+            TITLE_SIZE,
+        )?;
+        for (line, note) in notes.iter().enumerate() {
+            draw_centered(&main, note, 42 + 19 * line as i32, LABEL_SIZE)?;
+        }
         let mut ch = ChartBuilder::on(&main)
-            .margin_top(96)
+            .margin_top(104)
             .margin_left(12)
             .margin_right(16)
             .margin_bottom(8)
@@ -382,7 +383,7 @@ fn integer_label(v: f64) -> String {
 
 /// The colour bar: the scale from bottom (0 or `lo`) to top, with ticks and its quantity.
 fn color_bar(area: &Area, scale: Scale, quantity: &str, cells: &[f64]) -> Result<()> {
-    let (top, bottom) = (104, HEIGHT as i32 - 62);
+    let (top, bottom) = (112, HEIGHT as i32 - 62);
     let (x0, x1) = (14, 40);
     let steps = 120;
     for s in 0..steps {

@@ -62,12 +62,22 @@ pub(crate) const PALETTE: [RGBColor; 10] = [
 /// Writes a rendered SVG atomically to `out` (opened by the caller before the work, so that a
 /// bad path fails fast).
 pub(crate) fn commit_svg(mut out: Output, svg: &str) -> Result<()> {
+    let svg = compact(svg);
     let name = out.name();
     std::io::Write::write_all(&mut out, svg.as_bytes())
         .map_err(|e| crate::Error::io(name.clone(), e))?;
     out.commit()?;
     info(format!("wrote {name} ({} bytes)", svg.len()));
     Ok(())
+}
+
+/// `svg` without the attributes that only restate SVG's defaults (`opacity="1"`, and
+/// `stroke="none"`, the initial value of `stroke`): a heat map of thousands of cells shrinks by
+/// a quarter.
+fn compact(svg: &str) -> String {
+    svg.replace(" opacity=\"1\"", "")
+        .replace(" stroke=\"none\" stroke-width=\"1\"", "")
+        .replace(" stroke=\"none\"", "")
 }
 
 /// Opens the output of a figure: a file written atomically, or `-` for standard output
@@ -281,6 +291,15 @@ mod tests {
         assert_eq!(fmt_tick(0.0125), "0.0125");
         assert_eq!(fmt_tick(1e5), "1e5");
         assert_eq!(fmt_tick(2.5e-4), "2.5e-4");
+    }
+
+    #[test]
+    fn compact_drops_only_defaults() {
+        let svg = r##"<rect x="1" opacity="1" fill="#FFFFFF" stroke="none"/><circle opacity="0.5" fill="none" stroke="none" stroke-width="1"/><line opacity="1" stroke="#000000" stroke-width="1"/>"##;
+        assert_eq!(
+            compact(svg),
+            r##"<rect x="1" fill="#FFFFFF"/><circle opacity="0.5" fill="none"/><line stroke="#000000" stroke-width="1"/>"##
+        );
     }
 
     #[test]

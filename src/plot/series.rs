@@ -360,26 +360,37 @@ fn time_range(steps: usize) -> Range<f64> {
     padded(1.0, steps.max(2) as f64, 0.01)
 }
 
-/// The vertical range for data in `lo..hi`, with a strip below it for the lost-measurement
-/// ticks; returns the range and the strip.
-fn with_strip(lo: f64, hi: f64) -> (Range<f64>, (f64, f64)) {
+/// The vertical axis of a panel: its range, and the strip at its bottom that holds the
+/// lost-measurement ticks (below the data).
+struct ValueAxis {
+    range: Range<f64>,
+    strip: (f64, f64),
+}
+
+/// The vertical axis for data in `lo..hi`.
+fn with_strip(lo: f64, hi: f64) -> ValueAxis {
     let y = padded(lo, hi, 0.04);
     let span = y.end - y.start;
     let strip = (y.start - 0.09 * span, y.start - 0.02 * span);
-    (strip.0 - 0.01 * span..y.end, strip)
+    ValueAxis {
+        range: strip.0 - 0.01 * span..y.end,
+        strip,
+    }
 }
 
 type Chart<'a, 'b> = ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
-/// A chart under a caption and `legend`, with the common axes: time along x, `y_desc` up.
+/// A chart under a caption and `legend`, with the common axes: time along x, `y_desc` up
+/// over `axis`.
 fn chart<'a, 'b>(
     area: &'a Area<'b>,
     caption: &str,
     legend: &[(Swatch, String)],
     steps: usize,
-    y: Range<f64>,
+    axis: &ValueAxis,
     y_desc: &str,
 ) -> Result<Chart<'a, 'b>> {
+    let strip_top = axis.strip.1;
     let lines = legend_lines(WIDTH, LEGEND_X, legend);
     let mut ch = ChartBuilder::on(area)
         .margin_top(header_height(lines))
@@ -388,17 +399,24 @@ fn chart<'a, 'b>(
         .margin_bottom(6)
         .x_label_area_size(44)
         .y_label_area_size(78)
-        .build_cartesian_2d(time_range(steps), y)?;
+        .build_cartesian_2d(time_range(steps), axis.range.clone())?;
     ch.configure_mesh()
         .x_desc("time step t")
         .y_desc(y_desc)
         .axis_desc_style(font(DESC_SIZE))
         .label_style(font(LABEL_SIZE))
         .x_label_formatter(&|v| format!("{v:.0}"))
-        .y_label_formatter(&|v| fmt_tick(*v))
+        // No labels in the strip of lost-measurement ticks, which holds no data.
+        .y_label_formatter(&|v| {
+            if *v < strip_top {
+                String::new()
+            } else {
+                fmt_tick(*v)
+            }
+        })
         .x_labels(12)
         .y_labels(8)
-        .light_line_style(WHITE)
+        .light_line_style(TRANSPARENT)
         .bold_line_style(GRID)
         .draw()?;
     draw_centered(area, caption, 6, CAPTION_SIZE)?;
@@ -474,7 +492,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     }
     legend.push(lost_entry(d));
 
-    let (y, strip) = with_strip(range.0, range.1);
+    let axis = with_strip(range.0, range.1);
     let mut ch = chart(
         area,
         &format!(
@@ -483,7 +501,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
         ),
         &legend,
         steps,
-        y,
+        &axis,
         &format!("x{}", d.state),
     )?;
     for (tr, c) in &tracks {
@@ -503,7 +521,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     for (tr, c) in &tracks {
         ch.draw_series(line(tr.x.iter().copied(), *c))?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, strip.0, strip.1))?;
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
     Ok(())
 }
 
@@ -527,15 +545,14 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
         legend.push((
             Swatch::LineBand(*c),
             format!(
-                "error of {}, its ±2σ: {:.1} % inside",
+                "error of {}, its ±2σ: {:.1} % inside (95 % if honest)",
                 tr.name,
                 100.0 * inside as f64 / steps.max(1) as f64
             ),
         ));
     }
-    legend.push((Swatch::None, "(95 % when the covariance is honest)".into()));
     legend.push(lost_entry(d));
-    let (y, strip) = with_strip(-bound, bound);
+    let axis = with_strip(-bound, bound);
     let mut ch = chart(
         area,
         &format!(
@@ -544,7 +561,7 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
         ),
         &legend,
         steps,
-        y,
+        &axis,
         &format!("x̂{0} − x{0}", d.state),
     )?;
     let zero = vec![0.0; steps];
@@ -559,7 +576,7 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
     for (tr, c) in &tracks {
         ch.draw_series(line((0..steps).map(|t| tr.x[t] - d.truth[t]), *c))?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, strip.0, strip.1))?;
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
     Ok(())
 }
 
@@ -576,7 +593,7 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
         Swatch::None,
         format!("Not drawn over x{}: {}.", d.state, m.why_separate),
     ));
-    let (y, strip) = with_strip(range.0, range.1);
+    let axis = with_strip(range.0, range.1);
     let mut ch = chart(
         area,
         &format!(
@@ -585,7 +602,7 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
         ),
         &legend,
         steps,
-        y,
+        &axis,
         "y",
     )?;
     for r in 0..m.q {
@@ -605,6 +622,6 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
                 .map(|p| Cross::new(p, 3, GREY.stroke_width(1))),
         )?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, strip.0, strip.1))?;
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
     Ok(())
 }
