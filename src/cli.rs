@@ -169,7 +169,7 @@ pub struct EvaluateArgs {
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
     /// Repeat the evaluation for each arrival probability in this comma-separated list (e.g.
-    /// 0.5,0.7,0.9), which replaces the config's p everywhere ([dropout] and overrides); the
+    /// 0.5,0.7,0.9), which replaces the config's p everywhere (`[dropout]` and overrides); the
     /// same seeds serve every value.
     #[arg(long, value_delimiter = ',')]
     pub sweep_p: Option<Vec<f64>>,
