@@ -533,7 +533,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
 
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
 fn report_accuracy(r: &AccuracyReport) {
-    eprintln!("accuracy: {}", r.summary());
+    crate::messages::report("accuracy", r.summary());
     if r.nees_left_out > 0 {
         warn(format!(
             "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",

@@ -1,5 +1,6 @@
-//! Messages on standard error (SPEC §7), in one format: `error: …`, `warning: …` and, with
-//! `--verbose`, `info: …` — each exactly one line. Standard output carries only data.
+//! Messages on standard error (SPEC §7), in one format: `error: …`, `warning: …`, reports such
+//! as `accuracy: …` and, with `--verbose`, `info: …` — each exactly one line. Standard output
+//! carries only data.
 //!
 //! The verbosity is process-wide, set once by the binary from `--quiet` / `--verbose`:
 //! `--quiet` drops warnings, notes and progress bars (errors are always printed);
@@ -59,6 +60,12 @@ pub fn warn(msg: impl Display) {
     if verbosity() >= Verbosity::Normal {
         eprintln!("warning: {}", one_line(msg));
     }
+}
+
+/// Prints `{kind}: {msg}`: a report the command was asked for (e.g. `accuracy: …` for
+/// `estimate --truth`); always, since it is output rather than commentary.
+pub fn report(kind: &str, msg: impl Display) {
+    eprintln!("{kind}: {}", one_line(msg));
 }
 
 /// Prints `info: {msg}` with `--verbose` only (progress, timings, files written).
