@@ -14,8 +14,32 @@ use crate::io::estimates::Format;
 #[derive(Debug, Parser)]
 #[command(name = "sisfilt", version, about, long_about = None)]
 pub struct Cli {
+    /// Print no warnings or progress bars on standard error (errors are still printed).
+    #[arg(
+        long,
+        short,
+        global = true,
+        conflicts_with = "verbose",
+        display_order = 1000
+    )]
+    pub quiet: bool,
+    /// Also print progress and timings on standard error (`info: ` lines).
+    #[arg(long, short, global = true, display_order = 1000)]
+    pub verbose: bool,
     #[command(subcommand)]
     pub command: Command,
+}
+
+impl Cli {
+    /// The verbosity asked for by `--quiet` / `--verbose`.
+    pub fn verbosity(&self) -> crate::messages::Verbosity {
+        use crate::messages::Verbosity;
+        match (self.quiet, self.verbose) {
+            (true, _) => Verbosity::Quiet,
+            (false, true) => Verbosity::Verbose,
+            (false, false) => Verbosity::Normal,
+        }
+    }
 }
 
 #[derive(Debug, Subcommand)]
@@ -35,6 +59,95 @@ pub enum Command {
     /// band-k filter, the optimal centralized filter, a filter that knows the dropouts and a
     /// naive one.
     Evaluate(EvaluateArgs),
+    /// Draw an SVG figure from the files the other commands write.
+    #[command(subcommand)]
+    Plot(PlotCommand),
+    /// Print a shell completion script to standard output, e.g.
+    /// `sisfilt completions bash > ~/.local/share/bash-completion/completions/sisfilt`.
+    Completions {
+        /// The shell.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
+    /// Print a man page (roff) to standard output, e.g. `sisfilt man | man -l -`.
+    Man {
+        /// The command whose page to print, e.g. `estimate` or `plot series` (default: the
+        /// page of `sisfilt` itself).
+        command: Vec<String>,
+    },
+}
+
+/// The figures of `sisfilt plot` (SPEC §7); each writes one SVG file.
+#[derive(Debug, Subcommand)]
+pub enum PlotCommand {
+    /// One state element of one subsystem against time: truth, estimate with its ±2σ band,
+    /// measurements and the steps whose measurement was lost; below, the estimation error.
+    Series(PlotSeriesArgs),
+    /// Time × subsystem map of the normalised error |x̂ − x| / σ of one state element (or the
+    /// plain error |x̂ − x| with --plain): how errors spread along the chain.
+    Heatmap(PlotHeatmapArgs),
+    /// RMSE and average NEES of each filter from `sisfilt evaluate --out` (curves against p
+    /// for `evaluate --sweep-p`).
+    Evaluate(PlotEvaluateArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PlotSeriesArgs {
+    /// Estimates file written by `sisfilt estimate` (CSV or JSON).
+    #[arg(long)]
+    pub estimates: PathBuf,
+    /// Truth CSV written by `sisfilt simulate` (`t,i,x1..xn,gamma`).
+    #[arg(long)]
+    pub truth: PathBuf,
+    /// Measurement CSV (`t,i,y1..yq`): drawn over the state when a row of J picks that state
+    /// alone, else in a panel of its own.
+    #[arg(long)]
+    pub meas: Option<PathBuf>,
+    /// A second estimates file (e.g. from `estimate --smooth`), drawn with its own band for
+    /// comparison.
+    #[arg(long)]
+    pub smoothed: Option<PathBuf>,
+    /// The config, to learn J (default: the run.json beside --meas or --truth).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// The subsystem i (1..N).
+    #[arg(long)]
+    pub subsystem: usize,
+    /// The state element k (1..n).
+    #[arg(long)]
+    pub state: usize,
+    /// The SVG file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PlotHeatmapArgs {
+    /// Estimates file written by `sisfilt estimate` (CSV or JSON).
+    #[arg(long)]
+    pub estimates: PathBuf,
+    /// Truth CSV written by `sisfilt simulate`.
+    #[arg(long)]
+    pub truth: PathBuf,
+    /// The state element k (1..n).
+    #[arg(long, default_value_t = 1)]
+    pub state: usize,
+    /// Map the plain error |x̂ − x| instead of |x̂ − x| / σ.
+    #[arg(long)]
+    pub plain: bool,
+    /// The SVG file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PlotEvaluateArgs {
+    /// JSON written by `sisfilt evaluate --out` (with or without --sweep-p).
+    #[arg(long)]
+    pub input: PathBuf,
+    /// The SVG file to write.
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 #[derive(Debug, clap::Args)]
@@ -68,6 +181,11 @@ pub struct EvaluateArgs {
     /// centralized-smoother); their RMSE ratio is to the centralized smoother.
     #[arg(long)]
     pub smooth: bool,
+    /// Repeat the evaluation for each arrival probability in this comma-separated list (e.g.
+    /// 0.5,0.7,0.9), which replaces the config's p everywhere (`[dropout]` and overrides); the
+    /// same seeds serve every value.
+    #[arg(long, value_delimiter = ',')]
+    pub sweep_p: Option<Vec<f64>>,
 }
 
 /// The filters `estimate` can run.

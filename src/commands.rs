@@ -1,5 +1,6 @@
 //! The commands behind the command line: each reads its inputs, runs the library and writes
-//! its outputs. Warnings go to standard error through [`warn`]; data to standard output or files.
+//! its outputs. Warnings go to standard error through [`warn`] (see [`crate::messages`]); data to
+//! standard output or files.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -10,7 +11,7 @@ use sha2::Digest;
 
 use crate::accuracy::{Accuracy, AccuracyReport};
 use crate::cli::FilterKind;
-use crate::cli::{Command, EstimateArgs, EvaluateArgs, SimulateArgs};
+use crate::cli::{Command, EstimateArgs, EvaluateArgs, PlotCommand, SimulateArgs};
 use crate::config::ConfigSource;
 use crate::error::Error;
 use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
@@ -23,6 +24,7 @@ use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimatesWriter, Format};
 use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
 use crate::lifted::{a_eff_band, spectral_radius};
+use crate::messages::{Verbosity, info, verbosity};
 use crate::model::{MATRIX_KEYS, Model};
 use crate::simulate::simulate;
 use crate::smoother::{
@@ -37,11 +39,7 @@ const ESTIMATE_POWER_STEPS: usize = 400;
 /// Above this many lifted states `estimate` skips its stability check (`check` still does it).
 const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
 
-/// Prints a warning line on standard error (SPEC §7). A standard error that cannot be
-/// written to (a closed pipe) loses the warning but does not stop the run.
-pub fn warn(msg: impl std::fmt::Display) {
-    let _ = writeln!(std::io::stderr(), "warning: {msg}");
-}
+pub use crate::messages::warn;
 
 /// Writes `text` and a line break to standard output; a closed pipe comes back as an
 /// [`Error::Io`] of kind `BrokenPipe`, which the binary ends quietly with exit 0
@@ -60,7 +58,59 @@ pub fn run(command: Command) -> Result<()> {
         Command::Simulate(args) => simulate_command(&args),
         Command::Estimate(args) => estimate(&args),
         Command::Evaluate(args) => evaluate_command(&args),
+        Command::Plot(PlotCommand::Series(args)) => crate::plot::series::run(&args),
+        Command::Plot(PlotCommand::Heatmap(args)) => crate::plot::heatmap::run(&args),
+        Command::Plot(PlotCommand::Evaluate(args)) => crate::plot::evaluate::run(&args),
+        Command::Completions { shell } => completions(shell),
+        Command::Man { command } => man_page(&command),
     }
+}
+
+/// Writes `text` to standard output (quietly stopping on a closed pipe, like every output).
+fn print_to_stdout(text: &[u8]) -> Result<()> {
+    let mut out = Output::create(Path::new("-"))?;
+    std::io::Write::write_all(&mut out, text).map_err(|e| Error::io("<stdout>", e))?;
+    out.commit()?;
+    Ok(())
+}
+
+/// `sisfilt completions SHELL`: the completion script, generated from the clap definition.
+fn completions(shell: clap_complete::Shell) -> Result<()> {
+    let mut cmd = <crate::cli::Cli as clap::CommandFactory>::command();
+    let mut script = Vec::new();
+    clap_complete::generate(shell, &mut cmd, "sisfilt", &mut script);
+    print_to_stdout(&script)
+}
+
+/// `sisfilt man [COMMAND…]`: the man page (roff) of `sisfilt` or of one of its commands
+/// (`sisfilt man plot series` is the page `sisfilt-plot-series(1)`).
+fn man_page(path: &[String]) -> Result<()> {
+    let mut cmd = <crate::cli::Cli as clap::CommandFactory>::command();
+    // Building propagates the global options (--quiet, --verbose) into every command.
+    cmd.build();
+    let mut name = "sisfilt".to_string();
+    for word in path {
+        let Some(sub) = cmd.find_subcommand(word).cloned() else {
+            let known: Vec<&str> = cmd
+                .get_subcommands()
+                .map(clap::Command::get_name)
+                .filter(|n| *n != "help")
+                .collect();
+            return Err(Error::Usage(format!(
+                "man: `{name}` has no command `{word}`; expected one of: {}",
+                known.join(", ")
+            ))
+            .into());
+        };
+        name = format!("{name}-{word}");
+        cmd = sub;
+    }
+    let cmd = cmd.name(name).version(env!("CARGO_PKG_VERSION"));
+    let mut page = Vec::new();
+    clap_mangen::Man::new(cmd)
+        .render(&mut page)
+        .context("rendering the man page")?;
+    print_to_stdout(&page)
 }
 
 /// Reads and validates a config file.
@@ -306,6 +356,12 @@ fn write_simulation(
             .commit()?;
     }
     record_out.commit()?;
+    info(format!(
+        "simulate: T = {} steps × N = {} subsystems (seed {seed}) into {}",
+        model.steps,
+        model.subsystems,
+        out_dir.display()
+    ));
     Ok(())
 }
 
@@ -366,6 +422,7 @@ fn sha256_hex(text: &str) -> String {
 }
 
 fn estimate(args: &EstimateArgs) -> Result<()> {
+    let started = std::time::Instant::now();
     let (src, run_dir) = estimate_config(args)?;
     let model = Model::from_config(&src)?;
     let d = model.dims;
@@ -559,6 +616,11 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         .into());
     }
     inputs.finish(steps)?;
+    let elapsed = started.elapsed().as_secs_f64();
+    info(format!(
+        "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
+        (steps * big_n) as f64 / elapsed.max(1e-9)
+    ));
     let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
     if let Some(r) = &report {
         report_accuracy(r);
@@ -731,7 +793,7 @@ fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
 
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
 fn report_accuracy(r: &AccuracyReport) {
-    let _ = writeln!(std::io::stderr(), "accuracy: {}", r.summary());
+    crate::messages::report("accuracy", r.summary());
     if r.nees_left_out > 0 {
         warn(format!(
             "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
@@ -749,7 +811,7 @@ fn report_accuracy(r: &AccuracyReport) {
 fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
     use std::io::IsTerminal;
     let (_, model) = load_model(&args.config)?;
-    let mut out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
+    let out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
     let opts = crate::evaluate::EvaluateOptions {
         runs: args.runs,
         seed: args.seed.unwrap_or(model.seed),
@@ -759,33 +821,68 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
         filters: args.filters.clone(),
         smooth: args.smooth,
     };
-    let bar = if std::io::stderr().is_terminal() {
-        indicatif::ProgressBar::new(args.runs as u64)
+    let config_name = args.config.display().to_string();
+    let sweep = args.sweep_p.as_deref();
+    let total_runs = args.runs * sweep.map_or(1, <[f64]>::len);
+    let bar = if std::io::stderr().is_terminal() && verbosity() >= Verbosity::Normal {
+        indicatif::ProgressBar::new(total_runs as u64)
     } else {
         indicatif::ProgressBar::hidden()
     };
-    let result =
-        crate::evaluate::evaluate(&model, &args.config.display().to_string(), opts, || {
-            bar.inc(1)
-        })?;
+    info(format!(
+        "evaluate: {total_runs} runs of T = {} × N = {} on {} threads",
+        model.steps,
+        model.subsystems,
+        rayon::current_num_threads()
+    ));
+    if let Some(values) = sweep {
+        let result = crate::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))?;
+        bar.finish_and_clear();
+        info(format!("evaluate: {:.2} s", result.total_wall_time_s));
+        for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
+            warn_left_out(e, &format!(" at p = {p}"));
+        }
+        write_json(out, &result)?;
+        return print_stdout(result.table().trim_end_matches('\n'));
+    }
+    let result = crate::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))?;
     bar.finish_and_clear();
+    info(format!(
+        "evaluate: {:.2} s ({})",
+        result.total_wall_time_s,
+        result
+            .filters
+            .iter()
+            .map(|f| format!("{} {:.2} s", f.name, f.wall_time_s))
+            .collect::<Vec<_>>()
+            .join(", ")
+    ));
+    warn_left_out(&result, "");
+    // The file first: a reader of the table that stops early must not cost the JSON.
+    write_json(out, &result)?;
+    print_stdout(result.table().trim_end_matches('\n'))
+}
+
+/// The NEES warning of SPEC §3 for each filter of an evaluation.
+fn warn_left_out(result: &crate::evaluate::Evaluation, context: &str) {
     for f in &result.filters {
         if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
             warn(format!(
-                "NEES of {}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
+                "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
                 f.name, a.nees_left_out, a.terms
             ));
         }
     }
-    if let Some(out) = out.as_mut() {
+}
+
+/// Writes the JSON of `evaluate --out`, when asked for.
+fn write_json(out: Option<Output>, value: &impl serde::Serialize) -> Result<()> {
+    if let Some(mut out) = out {
         let name = out.name();
-        serde_json::to_writer_pretty(&mut *out, &result).context("writing the evaluation")?;
-        std::io::Write::write_all(out, b"\n").map_err(|e| Error::io(&name, e))?;
-    }
-    // The file first: a reader of the table that stops early must not cost the JSON.
-    if let Some(out) = out {
+        serde_json::to_writer_pretty(&mut out, value).context("writing the evaluation")?;
+        std::io::Write::write_all(&mut out, b"\n").map_err(|e| Error::io(&name, e))?;
         out.commit()?;
+        info(format!("wrote {name}"));
     }
-    print_stdout(result.table().trim_end_matches('\n'))?;
     Ok(())
 }

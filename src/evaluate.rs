@@ -474,6 +474,142 @@ pub fn evaluate(
     })
 }
 
+/// `evaluate --sweep-p`: one evaluation per arrival probability, each on the same seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct Sweep {
+    pub sisfilt_version: &'static str,
+    pub config: String,
+    pub options: EvaluateOptions,
+    pub subsystems: usize,
+    pub steps: usize,
+    /// The arrival probabilities in the order given; each replaces `p` at every `(t, i)`.
+    pub sweep_p: Vec<f64>,
+    /// One evaluation per value of `sweep_p`.
+    pub evaluations: Vec<Evaluation>,
+    /// Time of the whole sweep (seconds).
+    pub total_wall_time_s: f64,
+}
+
+/// Runs [`evaluate`] once per arrival probability in `values`, each replacing the config's `p`
+/// everywhere ([`Model::with_arrival_probability`]); `tick` is called once per finished run.
+pub fn sweep_p(
+    model: &Model,
+    config: &str,
+    opts: EvaluateOptions,
+    values: &[f64],
+    tick: impl Fn() + Sync,
+) -> Result<Sweep> {
+    let start = Instant::now();
+    if values.is_empty() {
+        return Err(Error::Usage(
+            "--sweep-p: expected at least one value".into(),
+        ));
+    }
+    if let Some(bad) = values.iter().find(|p| !(0.0..=1.0).contains(*p)) {
+        return Err(Error::Usage(format!(
+            "--sweep-p: expected probabilities in [0, 1], found {bad}"
+        )));
+    }
+    let evaluations = values
+        .iter()
+        .map(|&p| {
+            evaluate(
+                &model.with_arrival_probability(p),
+                config,
+                opts.clone(),
+                &tick,
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Sweep {
+        sisfilt_version: env!("CARGO_PKG_VERSION"),
+        config: config.to_string(),
+        options: opts,
+        subsystems: model.subsystems,
+        steps: model.steps,
+        sweep_p: values.to_vec(),
+        evaluations,
+        total_wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+impl Sweep {
+    /// The tables printed on standard output: overall RMSE and ANEES, one row per `p`.
+    pub fn table(&self) -> String {
+        let o = &self.options;
+        let mut s = format!(
+            "{}: {} runs (seeds {}..{}) × T = {} × N = {} per value of p; scored t > {}; p replaces the config's arrival probability at every (t, i)\n",
+            self.config,
+            o.runs,
+            o.seed,
+            o.seed.wrapping_add(o.runs as u64 - 1),
+            self.steps,
+            self.subsystems,
+            o.burn_in
+        );
+        let names: Vec<&str> = self.evaluations[0].filters.iter().map(|f| f.name).collect();
+        let widths: Vec<usize> = names.iter().map(|n| n.len().max(10) + 2).collect();
+        let block = |title: &str,
+                     pick: &dyn Fn(&AccuracyReport) -> Option<f64>,
+                     format: &dyn Fn(f64) -> String| {
+            let mut b = format!("\n{title}\n{:<8}", "p");
+            for (n, w) in names.iter().zip(&widths) {
+                b += &format!(" {n:>w$}");
+            }
+            b += "\n";
+            for (p, e) in self.sweep_p.iter().zip(&self.evaluations) {
+                b += &format!("{p:<8}");
+                for (f, w) in e.filters.iter().zip(&widths) {
+                    let cell = match &f.accuracy {
+                        None => "-".to_string(),
+                        Some(a) => pick(a).map_or("inf".into(), format),
+                    };
+                    b += &format!(" {cell:>w$}");
+                }
+                b += "\n";
+            }
+            b
+        };
+        s += &block("RMSE (overall)", &|a| Some(a.rmse_overall), &|v| {
+            format!("{v:.4e}")
+        });
+        // As in the table of one evaluation.
+        s += &block("ANEES", &|a| a.anees, &|v| {
+            if v < 1e4 {
+                format!("{v:.4}")
+            } else {
+                format!("{v:.3e}")
+            }
+        });
+        let mut notes: Vec<String> = Vec::new();
+        for (k, name) in names.iter().enumerate() {
+            let skipped: Vec<String> = self
+                .sweep_p
+                .iter()
+                .zip(&self.evaluations)
+                .filter_map(|(p, e)| e.filters[k].skipped.as_ref().map(|w| (p, w)))
+                .map(|(p, w)| format!("p = {p}: {w}"))
+                .collect();
+            if let Some(first) = skipped.first() {
+                if skipped.len() == self.sweep_p.len() {
+                    let why = first.split_once(": ").map_or(first.as_str(), |x| x.1);
+                    notes.push(format!("note: {name}: skipped for every p: {why}"));
+                } else {
+                    notes.push(format!("note: {name}: {}", skipped.join("; ")));
+                }
+            }
+        }
+        if !notes.is_empty() {
+            s += "\n";
+            for n in notes {
+                s += &n;
+                s += "\n";
+            }
+        }
+        s
+    }
+}
+
 impl Evaluation {
     /// The table printed on standard output.
     pub fn table(&self) -> String {

@@ -20,7 +20,8 @@
 //! - [`inputs`]: `u(t, ·)`; [`simulate`]: the true system with dropouts.
 //! - [`interconnect`]: step 1, the chain solve (on [`band_lu`]); [`lifted`]: the lifted system.
 //! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
-//! - [`cli`], [`commands`]: the command line.
+//! - [`plot`]: SVG figures from those files.
+//! - [`cli`], [`commands`]: the command line; [`messages`]: the one format of standard error.
 
 // Index loops mirror the formulas of SPEC.md; iterator chains would hide them.
 #![allow(clippy::needless_range_loop)]
@@ -39,7 +40,9 @@ pub mod interconnect;
 pub mod io;
 pub mod lifted;
 pub mod linalg;
+pub mod messages;
 pub mod model;
+pub mod plot;
 pub mod simulate;
 pub mod smoother;
 

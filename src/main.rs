@@ -1,10 +1,10 @@
 //! The `sisfilt` binary: parses the command line, runs the command, reports errors (SPEC §7).
 
-use std::io::Write;
 use std::process::ExitCode;
 
 use clap::Parser;
 use clap::error::ErrorKind;
+use sisfilt::messages;
 
 /// Exit code of a run stopped by SIGINT, SIGTERM or SIGHUP (the shell's 128 + SIGINT).
 const INTERRUPTED: i32 = 130;
@@ -27,12 +27,17 @@ fn main() -> ExitCode {
             e.exit()
         }
         Err(e) => {
-            let _ = writeln!(std::io::stderr(), "error: {}", usage_error_line(&e));
+            messages::error(usage_error_line(&e));
             return ExitCode::from(u8::try_from(e.exit_code()).unwrap_or(2));
         }
     };
+    messages::set_verbosity(cli.verbosity());
+    let started = std::time::Instant::now();
     match sisfilt::commands::run(cli.command) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(()) => {
+            messages::info(format!("done in {:.3} s", started.elapsed().as_secs_f64()));
+            ExitCode::SUCCESS
+        }
         Err(err) => {
             let broken_pipe = err.chain().any(|c| {
                 c.downcast_ref::<std::io::Error>()
@@ -43,8 +48,7 @@ fn main() -> ExitCode {
             if broken_pipe {
                 return ExitCode::SUCCESS;
             }
-            // A closed standard error must not turn the error into a panic.
-            let _ = writeln!(std::io::stderr(), "error: {err:#}");
+            messages::error(format!("{err:#}"));
             let code = err
                 .chain()
                 .find_map(|c| c.downcast_ref::<sisfilt::Error>())

@@ -663,6 +663,21 @@ impl Model {
         self.windows[self.window_index(t)].p[i - 1]
     }
 
+    /// The same model with the arrival probability `p` at every `(t, i)`: it replaces
+    /// `[dropout] p` and every override's `p` (`evaluate --sweep-p`). `p` must lie in `[0, 1]`.
+    pub fn with_arrival_probability(&self, p: f64) -> Model {
+        debug_assert!((0.0..=1.0).contains(&p));
+        let mut model = self.clone();
+        for w in &mut model.windows {
+            w.p.fill(p);
+        }
+        // Windows that differed only in p are one window now.
+        model
+            .windows
+            .dedup_by(|later, earlier| later.ids == earlier.ids);
+        model
+    }
+
     /// Whether a parameter (`A`…`Q` or `p`) varies in time and in space.
     pub fn variation(&self, key: &str) -> (bool, bool) {
         let (mut time, mut space) = (false, false);

@@ -29,16 +29,15 @@ impl StepLayout {
         h.extend(self.extra.iter().map(|s| s.to_string()));
         h
     }
-
-    fn columns(&self) -> usize {
-        2 + self.width + self.extra.len()
-    }
 }
 
 /// Reads a `t,i,…` CSV one time step (all `N` subsystems) at a time.
 pub struct StepReader<R: Read> {
     name: String,
-    layout: StepLayout,
+    /// The exact header the file must have: `t`, `i`, then the value columns.
+    header: Vec<String>,
+    allow_empty: bool,
+    empty_hint: &'static str,
     subsystems: usize,
     reader: csv::Reader<R>,
     record: csv::ByteRecord,
@@ -49,6 +48,27 @@ pub struct StepReader<R: Read> {
 impl<R: Read> StepReader<R> {
     /// Opens a reader and checks the header. `name` is used in messages.
     pub fn new(name: &str, source: R, layout: StepLayout, subsystems: usize) -> Result<Self> {
+        Self::with_header(
+            name,
+            source,
+            layout.header(),
+            layout.allow_empty,
+            layout.empty_hint,
+            subsystems,
+        )
+    }
+
+    /// Like [`StepReader::new`], for files whose value columns are not `prefix1..prefixW`
+    /// (the estimates file, SPEC §6): `header` is the exact header, `t` and `i` first.
+    pub fn with_header(
+        name: &str,
+        source: R,
+        header: Vec<String>,
+        allow_empty: bool,
+        empty_hint: &'static str,
+        subsystems: usize,
+    ) -> Result<Self> {
+        debug_assert!(header.len() >= 2 && header[0] == "t" && header[1] == "i");
         let reader = csv::ReaderBuilder::new()
             .has_headers(false)
             .flexible(true)
@@ -56,14 +76,16 @@ impl<R: Read> StepReader<R> {
             .from_reader(source);
         let mut this = Self {
             name: name.to_string(),
-            layout,
+            header,
+            allow_empty,
+            empty_hint,
             subsystems,
             reader,
             record: csv::ByteRecord::new(),
             next_t: 1,
             last_line: 1,
         };
-        let expected = this.layout.header().join(",");
+        let expected = this.header.join(",");
         let got = this
             .reader
             .read_byte_record(&mut this.record)
@@ -116,7 +138,7 @@ impl<R: Read> StepReader<R> {
 
     /// The number of values [`StepReader::read_step`] fills per time step.
     pub fn row_values(&self) -> usize {
-        self.subsystems * (self.layout.width + self.layout.extra.len())
+        self.subsystems * (self.header.len() - 2)
     }
 
     /// The next time step this reader expects (1-based).
@@ -128,7 +150,7 @@ impl<R: Read> StepReader<R> {
     /// row; an empty cell reads as NaN). Returns the step read, or `None` at the end of file.
     pub fn read_step(&mut self, out: &mut [f64]) -> Result<Option<usize>> {
         let t = self.next_t;
-        let per_row = self.layout.width + self.layout.extra.len();
+        let per_row = self.header.len() - 2;
         debug_assert_eq!(out.len(), self.subsystems * per_row);
         for i in 1..=self.subsystems {
             let more = self
@@ -152,13 +174,13 @@ impl<R: Read> StepReader<R> {
                 .position()
                 .map_or(self.last_line + 1, |p| p.line());
             self.last_line = line;
-            if self.record.len() != self.layout.columns() {
+            if self.record.len() != self.header.len() {
                 return Err(self.err(
                     line,
                     format!(
                         "expected {} columns ({}), found {}",
-                        self.layout.columns(),
-                        self.layout.header().join(","),
+                        self.header.len(),
+                        self.header.join(","),
                         self.record.len()
                     ),
                 ));
@@ -183,7 +205,7 @@ impl<R: Read> StepReader<R> {
     }
 
     fn column_name(&self, col: usize) -> String {
-        self.layout.header()[col].clone()
+        self.header[col].clone()
     }
 
     fn index(&self, line: u64, col: usize, what: &str) -> Result<usize> {
@@ -213,7 +235,7 @@ impl<R: Read> StepReader<R> {
             ));
         };
         if text.is_empty() {
-            if self.layout.allow_empty {
+            if self.allow_empty {
                 return Ok(f64::NAN);
             }
             return Err(self.err(
@@ -221,7 +243,7 @@ impl<R: Read> StepReader<R> {
                 format!(
                     "column `{}`: empty cell{}",
                     self.column_name(col),
-                    self.layout.empty_hint
+                    self.empty_hint
                 ),
             ));
         }

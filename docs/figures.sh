@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Regenerates the pictures of README.md (docs/*.svg) with the worked example's commands.
+# Usage: bash docs/figures.sh [SISFILT]   (default: target/release/sisfilt, built when missing)
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/.." && pwd)
+sisfilt=${1:-$repo/target/release/sisfilt}
+[[ -x $sisfilt ]] || (cd "$repo" && cargo build --release --locked)
+sisfilt=$(cd "$(dirname "$sisfilt")" && pwd)/$(basename "$sisfilt")
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+cd "$work"
+ln -s "$repo/configs" configs
+
+# The platoon: one run, its estimates, one car's gap error against time.
+"$sisfilt" simulate configs/platoon.toml --out run
+"$sisfilt" estimate --meas run/measurements.csv --truth run/truth.csv --out run/estimates.csv
+"$sisfilt" plot series --estimates run/estimates.csv --truth run/truth.csv \
+    --meas run/measurements.csv --subsystem 5 --state 1 --out run/series.svg
+# The heat rod: how the (normalised) error spreads along 50 segments.
+"$sisfilt" simulate configs/heat_rod.toml --out rod
+"$sisfilt" -q estimate --meas rod/measurements.csv --out rod/estimates.csv
+"$sisfilt" plot heatmap --estimates rod/estimates.csv --truth rod/truth.csv --out rod/heatmap.svg
+# Monte Carlo: five filters on 200 platoon runs, then RMSE and ANEES against p.
+"$sisfilt" -q evaluate configs/platoon.toml --runs 200 --out run/evaluate.json > /dev/null
+"$sisfilt" plot evaluate --input run/evaluate.json --out run/evaluate.svg
+"$sisfilt" -q evaluate configs/platoon.toml --runs 100 --sweep-p 0.3,0.5,0.7,0.85,1 \
+    --out run/sweep.json > /dev/null
+"$sisfilt" plot evaluate --input run/sweep.json --out run/sweep.svg
+
+cp run/series.svg rod/heatmap.svg run/evaluate.svg run/sweep.svg "$repo/docs/"
+echo "wrote docs/series.svg docs/heatmap.svg docs/evaluate.svg docs/sweep.svg"

@@ -1,0 +1,355 @@
+//! Reading the files the figures are drawn from (SPEC §6): truth, estimates (CSV or the JSON of
+//! `estimate --format json`) and measurements. The chain length `N` and the widths are learnt
+//! from the files themselves; the rows are then read and checked by the streaming
+//! [`StepReader`], one time step at a time, so that only what a figure needs is kept.
+
+use std::fs::File;
+use std::io::{BufReader, Read};
+use std::path::Path;
+
+use serde::Deserialize;
+
+use crate::error::{Error, Result};
+use crate::io::StepReader;
+use crate::io::estimates::estimates_header;
+
+/// A file's name as used in messages.
+fn display_name(path: &Path) -> String {
+    path.display().to_string()
+}
+
+fn open(path: &Path) -> Result<Box<dyn Read>> {
+    Ok(Box::new(BufReader::new(
+        File::open(path).map_err(|e| Error::io(path, e))?,
+    )))
+}
+
+/// The header and the chain length `N` of a per-`(t, i)` CSV: `N` is the number of rows of
+/// its first time step. A malformed row stops the count; the [`StepReader`] then names it.
+fn probe_csv(path: &Path) -> Result<(Vec<String>, usize)> {
+    let name = display_name(path);
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .from_reader(open(path)?);
+    let mut record = csv::StringRecord::new();
+    let csv_err = |e: csv::Error| Error::Csv {
+        file: name.clone(),
+        line: e.position().map_or(1, |p| p.line()),
+        msg: e.to_string(),
+    };
+    if !reader.read_record(&mut record).map_err(csv_err)? {
+        return Err(Error::Csv {
+            file: name,
+            line: 1,
+            msg: "empty file; expected a header row".into(),
+        });
+    }
+    let header: Vec<String> = record.iter().map(|f| f.trim().to_string()).collect();
+    let mut first_t: Option<String> = None;
+    let mut subsystems = 0;
+    while reader.read_record(&mut record).map_err(csv_err)? {
+        let t = record.get(0).unwrap_or_default().trim().to_string();
+        match &first_t {
+            None => first_t = Some(t),
+            Some(f) if *f != t => break,
+            Some(_) => {}
+        }
+        subsystems += 1;
+    }
+    if subsystems == 0 {
+        return Err(Error::File {
+            file: name,
+            msg: "holds no rows after the header".into(),
+        });
+    }
+    Ok((header, subsystems))
+}
+
+/// The truth file of `simulate`: `t,i,x1..xn,gamma`.
+pub struct TruthFile {
+    pub reader: StepReader<Box<dyn Read>>,
+    /// State dimension `n`.
+    pub n: usize,
+    /// Chain length `N`.
+    pub subsystems: usize,
+}
+
+impl TruthFile {
+    pub fn open(path: &Path) -> Result<Self> {
+        let (header, subsystems) = probe_csv(path)?;
+        let n = header.len().saturating_sub(3).max(1);
+        let mut expected = vec!["t".to_string(), "i".to_string()];
+        expected.extend((1..=n).map(|k| format!("x{k}")));
+        expected.push("gamma".into());
+        let reader = StepReader::with_header(
+            &display_name(path),
+            open(path)?,
+            expected,
+            false,
+            "",
+            subsystems,
+        )?;
+        Ok(Self {
+            reader,
+            n,
+            subsystems,
+        })
+    }
+
+    /// Values per time step: `N (n + 1)` (the states, then `gamma`, per subsystem).
+    pub fn row_values(&self) -> usize {
+        self.subsystems * (self.n + 1)
+    }
+}
+
+/// The measurement file: `t,i,y1..yq` (an empty cell, a lost element, reads as NaN).
+pub struct MeasurementFile {
+    pub reader: StepReader<Box<dyn Read>>,
+    pub q: usize,
+    pub subsystems: usize,
+}
+
+impl MeasurementFile {
+    pub fn open(path: &Path) -> Result<Self> {
+        let (header, subsystems) = probe_csv(path)?;
+        let q = header.len().saturating_sub(2).max(1);
+        let mut expected = vec!["t".to_string(), "i".to_string()];
+        expected.extend((1..=q).map(|k| format!("y{k}")));
+        let reader = StepReader::with_header(
+            &display_name(path),
+            open(path)?,
+            expected,
+            true,
+            "",
+            subsystems,
+        )?;
+        Ok(Self {
+            reader,
+            q,
+            subsystems,
+        })
+    }
+}
+
+/// The JSON document of `estimate --format json`, as far as the figures need it.
+#[derive(Deserialize)]
+struct EstimatesJson {
+    columns: Vec<String>,
+    estimates: Vec<Vec<Option<f64>>>,
+}
+
+enum EstimatesSource {
+    Csv(Box<StepReader<Box<dyn Read>>>),
+    Json {
+        rows: std::vec::IntoIter<Vec<Option<f64>>>,
+        /// 1-based number of the next row, for messages.
+        row_number: usize,
+        next_t: usize,
+    },
+}
+
+/// An estimates file (SPEC §6): `t,i,x1..xn,P1_1,P1_2..Pn_n`, as CSV or as the JSON of
+/// `estimate --format json` (chosen by the extension `.json`).
+pub struct EstimatesFile {
+    source: EstimatesSource,
+    name: String,
+    /// State dimension `n`.
+    pub n: usize,
+    /// Chain length `N`.
+    pub subsystems: usize,
+}
+
+/// The `n` whose estimates header has `columns` columns: `2 + n + n(n+1)/2`.
+fn estimates_n(columns: usize) -> Option<usize> {
+    (1..=columns).find(|&n| 2 + n + n * (n + 1) / 2 == columns)
+}
+
+impl EstimatesFile {
+    pub fn open(path: &Path) -> Result<Self> {
+        let name = display_name(path);
+        let header_error = |found: &[String]| Error::Csv {
+            file: name.clone(),
+            line: 1,
+            msg: format!(
+                "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (SPEC §6), found `{}`",
+                found.join(",").escape_debug()
+            ),
+        };
+        if path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+        {
+            let doc: EstimatesJson =
+                serde_json::from_reader(open(path)?).map_err(|e| Error::Csv {
+                    file: name.clone(),
+                    line: e.line() as u64,
+                    msg: format!(
+                        "not the JSON of `sisfilt estimate --format json` (expected `columns` and `estimates`): {e}"
+                    ),
+                })?;
+            let n = estimates_n(doc.columns.len())
+                .filter(|&n| doc.columns == estimates_header(n))
+                .ok_or_else(|| header_error(&doc.columns))?;
+            let first_t = doc.estimates.first().and_then(|r| r.first().copied());
+            let subsystems = doc
+                .estimates
+                .iter()
+                .take_while(|r| r.first().copied() == first_t)
+                .count();
+            if subsystems == 0 {
+                return Err(Error::File {
+                    file: name,
+                    msg: "holds no estimates".into(),
+                });
+            }
+            return Ok(Self {
+                source: EstimatesSource::Json {
+                    rows: doc.estimates.into_iter(),
+                    row_number: 1,
+                    next_t: 1,
+                },
+                name,
+                n,
+                subsystems,
+            });
+        }
+        let (header, subsystems) = probe_csv(path)?;
+        let n = estimates_n(header.len())
+            .filter(|&n| header == estimates_header(n))
+            .ok_or_else(|| header_error(&header))?;
+        let reader = StepReader::with_header(
+            &name,
+            open(path)?,
+            estimates_header(n),
+            false,
+            "",
+            subsystems,
+        )?;
+        Ok(Self {
+            source: EstimatesSource::Csv(Box::new(reader)),
+            name,
+            n,
+            subsystems,
+        })
+    }
+
+    /// The file name used in messages.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Values per row: `n + n(n+1)/2`.
+    pub fn row_width(&self) -> usize {
+        self.n + self.n * (self.n + 1) / 2
+    }
+
+    /// Position of `P_kk` (0-based `k`) in a row of [`EstimatesFile::read_step`].
+    pub fn variance_index(&self, k: usize) -> usize {
+        variance_index(self.n, k)
+    }
+
+    /// Reads the next time step (`N` rows of [`EstimatesFile::row_width`] values) into `out`;
+    /// `None` at the end of the file.
+    pub fn read_step(&mut self, out: &mut [f64]) -> Result<Option<usize>> {
+        let width = self.row_width();
+        match &mut self.source {
+            EstimatesSource::Csv(r) => r.read_step(out),
+            EstimatesSource::Json {
+                rows,
+                row_number,
+                next_t,
+            } => {
+                let t = *next_t;
+                for i in 1..=self.subsystems {
+                    let Some(row) = rows.next() else {
+                        if i == 1 {
+                            return Ok(None);
+                        }
+                        return Err(Error::File {
+                            file: self.name.clone(),
+                            msg: format!(
+                                "estimates end inside time step t = {t}: expected rows for i = {i}..{}",
+                                self.subsystems
+                            ),
+                        });
+                    };
+                    let bad = |msg: String| Error::File {
+                        file: self.name.clone(),
+                        msg: format!("estimates row {row_number}: {msg}"),
+                    };
+                    if row.len() != width + 2 {
+                        return Err(bad(format!(
+                            "expected {} numbers, found {}",
+                            width + 2,
+                            row.len()
+                        )));
+                    }
+                    if (row[0], row[1]) != (Some(t as f64), Some(i as f64)) {
+                        return Err(bad(format!(
+                            "expected t = {t}, i = {i} (rows are ordered by t then i)"
+                        )));
+                    }
+                    for (k, v) in row[2..].iter().enumerate() {
+                        out[(i - 1) * width + k] =
+                            v.ok_or_else(|| bad("a value is null (not a finite number)".into()))?;
+                    }
+                    *row_number += 1;
+                }
+                *next_t += 1;
+                Ok(Some(t))
+            }
+        }
+    }
+}
+
+/// Position of `P_kk` (0-based `k`) among the values `x1..xn,P1_1,P1_2..Pn_n` of a row: rows
+/// `0..k` of the upper triangle hold `n, n − 1, …, n − k + 1` entries.
+fn variance_index(n: usize, k: usize) -> usize {
+    n + k * n - k * k.saturating_sub(1) / 2
+}
+
+/// Checks that two files describe the same chain.
+pub fn same_chain(a: (&str, usize), b: (&str, usize)) -> Result<()> {
+    if a.1 != b.1 {
+        return Err(Error::File {
+            file: a.0.to_string(),
+            msg: format!(
+                "holds N = {} subsystems, but {} holds N = {}: were they written for the same run?",
+                a.1, b.0, b.1
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The error for two files that end at different time steps (`shorter` ends after `t`).
+pub fn ends_early(shorter: &str, longer: &str, t: usize) -> Error {
+    Error::File {
+        file: shorter.to_string(),
+        msg: format!(
+            "ends after t = {t}, but {longer} goes on: were they written for the same run?"
+        ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn estimates_layout() {
+        assert_eq!(estimates_n(2 + 2 + 3), Some(2));
+        assert_eq!(estimates_n(2 + 3 + 6), Some(3));
+        assert_eq!(estimates_n(6), None);
+        // Against the column names of the header the writer uses.
+        for n in 1..=6 {
+            let header = estimates_header(n);
+            for k in 0..n {
+                let column = format!("P{}_{}", k + 1, k + 1);
+                let position = header.iter().position(|c| *c == column).unwrap() - 2;
+                assert_eq!(variance_index(n, k), position, "n = {n}, k = {k}");
+            }
+        }
+    }
+}

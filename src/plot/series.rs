@@ -1,0 +1,627 @@
+//! `sisfilt plot series`: one state element `x_k` of one subsystem `i` against time.
+//!
+//! The top panel shows the truth, the estimate `x̂_k(t)` with its band `x̂_k ± 2σ_k`
+//! (`σ_k² = P_kk`, the reported variance), an optional second estimate (`--smoothed`) with its
+//! own band, and the time steps whose measurement was lost (`gamma = 0` in the truth file) as
+//! ticks along the time axis. The measurements `y = γ J x + R u + d` (SPEC §1, (P5)) are drawn
+//! over the state when some row of `J` picks `x_k` alone and `R` adds nothing to it (then
+//! `y_r = x_k + d_r` when the measurement arrived, pure noise when it was lost); otherwise they
+//! get a panel of their own. The middle panel shows the error `x̂_k − x_k` against `±2σ_k`:
+//! for a consistent filter about 95 % of the error lies inside the band.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use plotters::coord::types::RangedCoordf64;
+use plotters::prelude::*;
+
+use super::data::{EstimatesFile, MeasurementFile, TruthFile, ends_early, same_chain};
+use super::{
+    Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, PALETTE,
+    SMOOTHED, Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick,
+    font, header_height, legend_lines, open_output, padded,
+};
+use crate::cli::PlotSeriesArgs;
+use crate::error::Error;
+use crate::io::RunRecord;
+use crate::messages::warn;
+use crate::model::Model;
+
+/// One estimate of `x_k(t)`, `t = 1..T`, with its reported variance.
+pub struct Track {
+    /// The file it came from (for the legend).
+    pub name: String,
+    pub x: Vec<f64>,
+    pub var: Vec<f64>,
+}
+
+/// The measurements of the subsystem, `t = 1..T`.
+pub struct Measured {
+    /// `T × q` values, row by row (NaN: an element left empty, `--dropouts known`).
+    pub y: Vec<f64>,
+    pub q: usize,
+    /// The row `r` (0-based) of `J` that picks `x_k` alone, when there is one.
+    pub direct: Option<usize>,
+    /// Why the measurements are not drawn over the state (when `direct` is `None`).
+    pub why_separate: String,
+}
+
+/// Everything the figure shows.
+pub struct SeriesData {
+    /// Subsystem `i` and state element `k`, 1-based.
+    pub subsystem: usize,
+    pub state: usize,
+    pub truth: Vec<f64>,
+    /// Whether the measurement of `(t, i)` arrived.
+    pub gamma: Vec<bool>,
+    pub estimate: Track,
+    pub smoothed: Option<Track>,
+    pub meas: Option<Measured>,
+}
+
+/// `sisfilt plot series`.
+pub fn run(args: &PlotSeriesArgs) -> Result<()> {
+    let out = open_output(&args.out)?;
+    let data = read(args)?;
+    let svg = render(&data)?;
+    commit_svg(out, &svg)
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name().map_or_else(
+        || path.display().to_string(),
+        |f| f.to_string_lossy().into(),
+    )
+}
+
+/// Reads the files of `args` in lock-step and keeps subsystem `i`, state `k`.
+pub fn read(args: &PlotSeriesArgs) -> Result<SeriesData> {
+    let mut truth = TruthFile::open(&args.truth)?;
+    let mut est = EstimatesFile::open(&args.estimates)?;
+    let mut smooth = args
+        .smoothed
+        .as_deref()
+        .map(EstimatesFile::open)
+        .transpose()?;
+    let mut meas = args
+        .meas
+        .as_deref()
+        .map(MeasurementFile::open)
+        .transpose()?;
+    let truth_name = truth.reader.name().to_string();
+    let (n, big_n) = (truth.n, truth.subsystems);
+    for e in std::iter::once(&est).chain(smooth.as_ref()) {
+        same_chain((e.name(), e.subsystems), (&truth_name, big_n))?;
+        if e.n != n {
+            return Err(Error::File {
+                file: e.name().to_string(),
+                msg: format!(
+                    "holds n = {} states per subsystem, but {truth_name} holds n = {n}: were they written for the same run?",
+                    e.n
+                ),
+            }
+            .into());
+        }
+    }
+    if let Some(m) = &meas {
+        same_chain((m.reader.name(), m.subsystems), (&truth_name, big_n))?;
+    }
+    if !(1..=big_n).contains(&args.subsystem) {
+        return Err(Error::Usage(format!(
+            "--subsystem {}: expected 1..{big_n} ({truth_name} holds N = {big_n} subsystems)",
+            args.subsystem
+        ))
+        .into());
+    }
+    if !(1..=n).contains(&args.state) {
+        return Err(Error::Usage(format!(
+            "--state {}: expected 1..{n} ({truth_name} holds n = {n} states per subsystem)",
+            args.state
+        ))
+        .into());
+    }
+    let (i, k) = (args.subsystem - 1, args.state - 1);
+
+    let mut x_true = vec![0.0; truth.row_values()];
+    let width = est.row_width();
+    let mut x_est = vec![0.0; big_n * width];
+    let mut x_smooth = vec![0.0; big_n * width];
+    let q = meas.as_ref().map_or(0, |m| m.q);
+    let mut y = vec![0.0; big_n * q];
+    let var_at = est.variance_index(k);
+
+    let mut data = SeriesData {
+        subsystem: args.subsystem,
+        state: args.state,
+        truth: vec![],
+        gamma: vec![],
+        estimate: Track {
+            name: file_name(&args.estimates),
+            x: vec![],
+            var: vec![],
+        },
+        smoothed: args.smoothed.as_deref().map(|p| Track {
+            name: file_name(p),
+            x: vec![],
+            var: vec![],
+        }),
+        meas: None,
+    };
+    let mut y_kept = Vec::new();
+    loop {
+        let t_truth = truth.reader.read_step(&mut x_true)?;
+        let t_est = est.read_step(&mut x_est)?;
+        let Some(t) = t_truth else {
+            if let Some(t) = t_est {
+                return Err(ends_early(&truth_name, est.name(), t - 1).into());
+            }
+            break;
+        };
+        if t_est.is_none() {
+            return Err(ends_early(est.name(), &truth_name, t - 1).into());
+        }
+        data.truth.push(x_true[i * (n + 1) + k]);
+        data.gamma.push(x_true[i * (n + 1) + n] != 0.0);
+        data.estimate.x.push(x_est[i * width + k]);
+        data.estimate.var.push(x_est[i * width + var_at]);
+        if let (Some(s), Some(track)) = (smooth.as_mut(), data.smoothed.as_mut()) {
+            if s.read_step(&mut x_smooth)?.is_none() {
+                return Err(ends_early(s.name(), &truth_name, t - 1).into());
+            }
+            track.x.push(x_smooth[i * width + k]);
+            track.var.push(x_smooth[i * width + var_at]);
+        }
+        if let Some(m) = meas.as_mut() {
+            if m.reader.read_step(&mut y)?.is_none() {
+                return Err(ends_early(m.reader.name(), &truth_name, t - 1).into());
+            }
+            y_kept.extend_from_slice(&y[i * q..(i + 1) * q]);
+        }
+    }
+    let steps = data.truth.len();
+    // Every file must end where the truth ends.
+    if let Some(s) = smooth.as_mut() {
+        if s.read_step(&mut x_smooth)?.is_some() {
+            return Err(ends_early(&truth_name, s.name(), steps).into());
+        }
+    }
+    if let Some(m) = meas.as_mut() {
+        if m.reader.read_step(&mut y)?.is_some() {
+            return Err(ends_early(&truth_name, m.reader.name(), steps).into());
+        }
+    }
+    if let Some(meas_path) = &args.meas {
+        let (direct, why_separate) =
+            match measurement_model(args.config.as_deref(), meas_path, &args.truth)? {
+                Some(model) => direct_row(&model, q, n, big_n, args.subsystem, k, steps),
+                None => (
+                    None,
+                    "no config (pass --config, or keep run.json beside the data) to tell which state y measures".into(),
+                ),
+            };
+        data.meas = Some(Measured {
+            y: y_kept,
+            q,
+            direct,
+            why_separate,
+        });
+    }
+    Ok(data)
+}
+
+/// The model that says what `y` measures: `--config`, else the `run.json` beside the
+/// measurements or the truth. A run record that cannot be used only costs the overlay.
+fn measurement_model(config: Option<&Path>, meas: &Path, truth: &Path) -> Result<Option<Model>> {
+    if let Some(path) = config {
+        return Ok(Some(crate::commands::load_model(path)?.1));
+    }
+    let dir_of = |p: &Path| -> PathBuf {
+        match p.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        }
+    };
+    let mut dirs = vec![dir_of(meas)];
+    if dir_of(truth) != dirs[0] {
+        dirs.push(dir_of(truth));
+    }
+    for dir in dirs {
+        let record_path = dir.join(RunRecord::FILE);
+        let model = RunRecord::load(&dir).and_then(|record| match record {
+            Some(r) => Model::from_config(&r.config_source(&record_path)?).map(Some),
+            None => Ok(None),
+        });
+        match model {
+            Ok(Some(m)) => return Ok(Some(m)),
+            Ok(None) => {}
+            Err(e) => warn(format!(
+                "{e}: drawing the measurements in a panel of their own"
+            )),
+        }
+    }
+    Ok(None)
+}
+
+/// The first row `r` of `J` with `J[r, :] = e_kᵀ` and `R[r, :] = 0` for subsystem `i` at
+/// every `t ≤ steps`: then `y_r` measures `x_k` directly.
+fn direct_row(
+    model: &Model,
+    q: usize,
+    n: usize,
+    subsystems: usize,
+    i: usize,
+    k: usize,
+    steps: usize,
+) -> (Option<usize>, String) {
+    let d = model.dims;
+    if (d.q, d.n, model.subsystems) != (q, n, subsystems) {
+        return (
+            None,
+            format!(
+                "the config ({}) has q = {}, n = {}, N = {}, the files q = {q}, n = {n}, N = {subsystems}",
+                model.name, d.q, d.n, model.subsystems
+            ),
+        );
+    }
+    let windows: Vec<_> = model
+        .windows()
+        .iter()
+        .filter(|w| w.first <= steps.max(1))
+        .collect();
+    let picks = |r: usize| {
+        windows.iter().all(|w| {
+            let p = model.param_set(w.ids[i - 1]);
+            (0..n).all(|c| p.J[(r, c)] == if c == k { 1.0 } else { 0.0 })
+                && (0..d.m).all(|c| p.R[(r, c)] == 0.0)
+        })
+    };
+    match (0..q).find(|&r| picks(r)) {
+        Some(r) => (Some(r), String::new()),
+        None => (None, format!("no row of J measures x{} alone", k + 1)),
+    }
+}
+
+/// The interval holding `values` (finite ones).
+fn extent<'a>(values: impl Iterator<Item = &'a f64>) -> (f64, f64) {
+    values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v), hi.max(v))
+        })
+}
+
+fn union(a: (f64, f64), b: (f64, f64)) -> (f64, f64) {
+    (a.0.min(b.0), a.1.max(b.1))
+}
+
+const STATE_PANEL: u32 = 470;
+const ERROR_PANEL: u32 = 360;
+const MEAS_PANEL: u32 = 330;
+const TITLE_HEIGHT: u32 = 44;
+
+/// Renders the figure as an SVG document.
+pub fn render(d: &SeriesData) -> Result<String> {
+    let separate_meas = d.meas.as_ref().filter(|m| m.direct.is_none());
+    let height = TITLE_HEIGHT
+        + STATE_PANEL
+        + ERROR_PANEL
+        + if separate_meas.is_some() {
+            MEAS_PANEL
+        } else {
+            0
+        };
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (WIDTH, height)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let (title, rest) = root.split_vertically(TITLE_HEIGHT);
+        draw_centered(
+            &title,
+            &format!(
+                "Subsystem {}, state x{}: {} against the truth",
+                d.subsystem,
+                d.state,
+                std::iter::once(&d.estimate)
+                    .chain(d.smoothed.as_ref())
+                    .map(|t| t.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            ),
+            12,
+            TITLE_SIZE,
+        )?;
+        let (state_area, rest) = rest.split_vertically(STATE_PANEL);
+        let (error_area, meas_area) = rest.split_vertically(ERROR_PANEL);
+        state_panel(&state_area, d)?;
+        error_panel(&error_area, d)?;
+        if let Some(m) = separate_meas {
+            meas_panel(&meas_area, d, m)?;
+        }
+        root.present()?;
+    }
+    Ok(svg)
+}
+
+/// The lost-measurement ticks: one short vertical line per `t` with `gamma = 0`, in the strip
+/// `y0..y1` along the time axis.
+fn lost_ticks(gamma: &[bool], y0: f64, y1: f64) -> impl Iterator<Item = PathElement<(f64, f64)>> {
+    gamma
+        .iter()
+        .enumerate()
+        .filter(|(_, g)| !**g)
+        .map(move |(t, _)| {
+            let t = (t + 1) as f64;
+            PathElement::new(vec![(t, y0), (t, y1)], LOST.stroke_width(1))
+        })
+}
+
+fn time_range(steps: usize) -> Range<f64> {
+    padded(1.0, steps.max(2) as f64, 0.01)
+}
+
+/// The vertical axis of a panel: its range, and the strip at its bottom that holds the
+/// lost-measurement ticks (below the data).
+struct ValueAxis {
+    range: Range<f64>,
+    strip: (f64, f64),
+}
+
+/// The vertical axis for data in `lo..hi`.
+fn with_strip(lo: f64, hi: f64) -> ValueAxis {
+    let y = padded(lo, hi, 0.04);
+    let span = y.end - y.start;
+    let strip = (y.start - 0.09 * span, y.start - 0.02 * span);
+    ValueAxis {
+        range: strip.0 - 0.01 * span..y.end,
+        strip,
+    }
+}
+
+type Chart<'a, 'b> = ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// A chart under a caption and `legend`, with the common axes: time along x, `y_desc` up
+/// over `axis`.
+fn chart<'a, 'b>(
+    area: &'a Area<'b>,
+    caption: &str,
+    legend: &[(Swatch, String)],
+    steps: usize,
+    axis: &ValueAxis,
+    y_desc: &str,
+) -> Result<Chart<'a, 'b>> {
+    let strip_top = axis.strip.1;
+    let lines = legend_lines(WIDTH, LEGEND_X, legend);
+    let mut ch = ChartBuilder::on(area)
+        .margin_top(header_height(lines))
+        .margin_left(12)
+        .margin_right(24)
+        .margin_bottom(6)
+        .x_label_area_size(44)
+        .y_label_area_size(78)
+        .build_cartesian_2d(time_range(steps), axis.range.clone())?;
+    ch.configure_mesh()
+        .x_desc("time step t")
+        .y_desc(y_desc)
+        .axis_desc_style(font(DESC_SIZE))
+        .label_style(font(LABEL_SIZE))
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        // No labels in the strip of lost-measurement ticks, which holds no data.
+        .y_label_formatter(&|v| {
+            if *v < strip_top {
+                String::new()
+            } else {
+                fmt_tick(*v)
+            }
+        })
+        .x_labels(12)
+        .y_labels(8)
+        .light_line_style(TRANSPARENT)
+        .bold_line_style(GRID)
+        .draw()?;
+    draw_centered(area, caption, 6, CAPTION_SIZE)?;
+    draw_legend(area, LEGEND_X, 46, legend)?;
+    Ok(ch)
+}
+
+/// Legends start here, in line with the charts' y axes.
+const LEGEND_X: i32 = 90;
+
+/// `2σ = 2√var`, with a negative rounding residue read as 0.
+fn two_sigma(var: f64) -> f64 {
+    2.0 * var.max(0.0).sqrt()
+}
+
+/// The filled band `center ± 2σ` as a polygon.
+fn band(center: &[f64], var: &[f64], color: RGBColor) -> Polygon<(f64, f64)> {
+    let upper = (0..center.len()).map(|t| ((t + 1) as f64, center[t] + two_sigma(var[t])));
+    let lower = (0..center.len())
+        .rev()
+        .map(|t| ((t + 1) as f64, center[t] - two_sigma(var[t])));
+    Polygon::new(
+        upper.chain(lower).collect::<Vec<_>>(),
+        color.mix(0.22).filled(),
+    )
+}
+
+fn line<DB: DrawingBackend>(
+    values: impl Iterator<Item = f64>,
+    color: RGBColor,
+) -> LineSeries<DB, (f64, f64)> {
+    LineSeries::new(
+        values.enumerate().map(|(t, v)| ((t + 1) as f64, v)),
+        color.stroke_width(2),
+    )
+}
+
+fn lost_entry(d: &SeriesData) -> (Swatch, String) {
+    let lost = d.gamma.iter().filter(|g| !**g).count();
+    (
+        Swatch::Tick(LOST),
+        format!(
+            "measurement lost (γ = 0): {lost} of {} steps",
+            d.gamma.len()
+        ),
+    )
+}
+
+fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
+    let steps = d.truth.len();
+    let tracks: Vec<(&Track, RGBColor)> = std::iter::once(&d.estimate)
+        .chain(d.smoothed.as_ref())
+        .zip([ESTIMATE, SMOOTHED])
+        .collect();
+    let mut range = extent(d.truth.iter());
+    for (tr, _) in &tracks {
+        for t in 0..steps {
+            let s = two_sigma(tr.var[t]);
+            range = union(range, extent([tr.x[t] - s, tr.x[t] + s].iter()));
+        }
+    }
+    let direct = d.meas.as_ref().and_then(|m| m.direct.map(|r| (m, r)));
+    if let Some((m, r)) = direct {
+        range = union(range, extent(m.y.iter().skip(r).step_by(m.q)));
+    }
+    let mut legend = vec![(Swatch::Line(TRUTH), "truth".to_string())];
+    for (tr, c) in &tracks {
+        legend.push((Swatch::LineBand(*c), format!("{} ± 2σ", tr.name)));
+    }
+    if let Some((_, r)) = direct {
+        legend.push((Swatch::Dot(MEASURED), format!("measurement y{}", r + 1)));
+        legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+    }
+    legend.push(lost_entry(d));
+
+    let axis = with_strip(range.0, range.1);
+    let mut ch = chart(
+        area,
+        &format!(
+            "x{} against time: truth, estimate and its ±2σ band",
+            d.state
+        ),
+        &legend,
+        steps,
+        &axis,
+        &format!("x{}", d.state),
+    )?;
+    for (tr, c) in &tracks {
+        ch.draw_series(std::iter::once(band(&tr.x, &tr.var, *c)))?;
+    }
+    if let Some((m, r)) = direct {
+        let points = |arrived: bool| {
+            (0..steps)
+                .filter(move |&t| d.gamma[t] == arrived)
+                .map(move |t| ((t + 1) as f64, m.y[t * m.q + r]))
+                .filter(|(_, v)| v.is_finite())
+        };
+        ch.draw_series(points(true).map(|p| Circle::new(p, 2, MEASURED.filled())))?;
+        ch.draw_series(points(false).map(|p| Cross::new(p, 3, GREY.stroke_width(1))))?;
+    }
+    ch.draw_series(line(d.truth.iter().copied(), TRUTH))?;
+    for (tr, c) in &tracks {
+        ch.draw_series(line(tr.x.iter().copied(), *c))?;
+    }
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    Ok(())
+}
+
+fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
+    let steps = d.truth.len();
+    let tracks: Vec<(&Track, RGBColor)> = std::iter::once(&d.estimate)
+        .chain(d.smoothed.as_ref())
+        .zip([ESTIMATE, SMOOTHED])
+        .collect();
+    let mut bound: f64 = 0.0;
+    let mut legend = Vec::new();
+    for (tr, c) in &tracks {
+        let mut inside = 0;
+        for t in 0..steps {
+            let e = (tr.x[t] - d.truth[t]).abs();
+            let s = two_sigma(tr.var[t]);
+            bound = bound.max(if e.is_finite() { e } else { 0.0 });
+            bound = bound.max(if s.is_finite() { s } else { 0.0 });
+            inside += usize::from(e <= s);
+        }
+        legend.push((
+            Swatch::LineBand(*c),
+            format!(
+                "error of {}, its ±2σ: {:.1} % inside (95 % if honest)",
+                tr.name,
+                100.0 * inside as f64 / steps.max(1) as f64
+            ),
+        ));
+    }
+    legend.push(lost_entry(d));
+    let axis = with_strip(-bound, bound);
+    let mut ch = chart(
+        area,
+        &format!(
+            "Estimation error x̂{0} − x{0} against the reported ±2σ",
+            d.state
+        ),
+        &legend,
+        steps,
+        &axis,
+        &format!("x̂{0} − x{0}", d.state),
+    )?;
+    let zero = vec![0.0; steps];
+    // The band is ±2σ around 0, so that one sees whether the error leaves it.
+    for (tr, c) in &tracks {
+        ch.draw_series(std::iter::once(band(&zero, &tr.var, *c)))?;
+    }
+    ch.draw_series(std::iter::once(PathElement::new(
+        vec![(0.0, 0.0), (steps as f64 + 1.0, 0.0)],
+        TRUTH.stroke_width(1),
+    )))?;
+    for (tr, c) in &tracks {
+        ch.draw_series(line((0..steps).map(|t| tr.x[t] - d.truth[t]), *c))?;
+    }
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    Ok(())
+}
+
+fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
+    let steps = d.truth.len();
+    let range = extent(m.y.iter());
+    let color = |r: usize| PALETTE[(r + 2) % PALETTE.len()];
+    let mut legend: Vec<(Swatch, String)> = (0..m.q)
+        .map(|r| (Swatch::Dot(color(r)), format!("y{}", r + 1)))
+        .collect();
+    legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+    legend.push(lost_entry(d));
+    legend.push((
+        Swatch::None,
+        format!("Not drawn over x{}: {}.", d.state, m.why_separate),
+    ));
+    let axis = with_strip(range.0, range.1);
+    let mut ch = chart(
+        area,
+        &format!(
+            "Measurements y = γ J x + R u + d of subsystem {}",
+            d.subsystem
+        ),
+        &legend,
+        steps,
+        &axis,
+        "y",
+    )?;
+    for r in 0..m.q {
+        let point = move |t: usize| ((t + 1) as f64, m.y[t * m.q + r]);
+        ch.draw_series(
+            (0..steps)
+                .filter(|&t| d.gamma[t])
+                .map(point)
+                .filter(|(_, v)| v.is_finite())
+                .map(|p| Circle::new(p, 2, color(r).filled())),
+        )?;
+        ch.draw_series(
+            (0..steps)
+                .filter(|&t| !d.gamma[t])
+                .map(point)
+                .filter(|(_, v)| v.is_finite())
+                .map(|p| Cross::new(p, 3, GREY.stroke_width(1))),
+        )?;
+    }
+    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    Ok(())
+}
