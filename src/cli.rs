@@ -116,6 +116,10 @@ pub struct EstimateArgs {
     /// Largest lifted state size N·n the centralized filter accepts.
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
+    /// Print on standard error the wall-clock time spent reading the input files, filtering
+    /// and writing the estimates (a `timings:` line).
+    #[arg(long)]
+    pub timings: bool,
 }
 
 #[derive(Debug, clap::Args)]

@@ -303,6 +303,7 @@ fn sha256_hex(text: &str) -> String {
 }
 
 fn estimate(args: &EstimateArgs) -> Result<()> {
+    let started = std::time::Instant::now();
     let (src, run_dir) = estimate_config(args)?;
     let model = Model::from_config(&src)?;
     let d = model.dims;
@@ -377,8 +378,9 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "subsystems": big_n,
         "n": n,
     });
-    let mut writer = EstimatesWriter::new(output, format, n, metadata)?;
     let out_name = args.out.display().to_string();
+    let mut writer =
+        EstimatesWriter::new(output, format, n, metadata).map_err(|e| Error::io(&out_name, e))?;
 
     let mut filter: Box<dyn ChainFilter> = match args.filter {
         FilterKind::Distributed => two_step(&model, opts)?,
@@ -396,9 +398,21 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
     let mut warned_transfer = false;
     let mut steps = 0;
-    while let Some(t) = meas.read_step(&mut y)? {
-        inputs.next(t, &mut u)?;
-        filter.step(&y, &u)?;
+    let mut clock = PhaseClock::default();
+    loop {
+        // The measurement and input files are parsed side by side.
+        let next_t = meas.next_t();
+        let (t, inputs_read) =
+            clock.read(|| rayon::join(|| meas.read_step(&mut y), || inputs.next(next_t, &mut u)));
+        let Some(t) = t? else {
+            // The inputs were read one step ahead of the measurements' end.
+            if let (Ok(()), Some(e)) = (&inputs_read, inputs.read_beyond(steps)) {
+                return Err(e.into());
+            }
+            break;
+        };
+        inputs_read?;
+        clock.filter(|| filter.step(&y, &u))?;
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
             warn(format!(
@@ -411,18 +425,11 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         } else {
             filter.filtered()
         };
-        for i in 0..big_n {
-            writer
-                .row(
-                    t,
-                    i + 1,
-                    &x_hat[i * n..(i + 1) * n],
-                    &p_hat[i * n * n..(i + 1) * n * n],
-                )
-                .map_err(|e| Error::io(&out_name, e))?;
-        }
+        clock
+            .write(|| writer.write_step(t, x_hat, p_hat))
+            .map_err(|e| Error::io(&out_name, e))?;
         if let Some(truth) = truth.as_mut() {
-            if truth.read_step(&mut x_true)?.is_none() {
+            if clock.read(|| truth.read_step(&mut x_true))?.is_none() {
                 return Err(Error::File {
                     file: truth.name().to_string(),
                     msg: format!(
@@ -464,8 +471,56 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     if let Some(r) = &report {
         report_accuracy(r);
     }
-    writer.finish(report.as_ref())?;
+    clock.write(|| writer.commit(report.as_ref()))?;
+    if args.timings {
+        let rows = steps * big_n;
+        eprintln!("timings: {}", clock.summary(started.elapsed(), rows));
+    }
     Ok(())
+}
+
+/// Wall-clock time spent in each phase of `estimate` (`--timings`).
+#[derive(Default)]
+struct PhaseClock {
+    read: std::time::Duration,
+    filter: std::time::Duration,
+    write: std::time::Duration,
+}
+
+impl PhaseClock {
+    fn time<R>(slot: &mut std::time::Duration, f: impl FnOnce() -> R) -> R {
+        let start = std::time::Instant::now();
+        let r = f();
+        *slot += start.elapsed();
+        r
+    }
+
+    fn read<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.read, f)
+    }
+
+    fn filter<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.filter, f)
+    }
+
+    fn write<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.write, f)
+    }
+
+    /// `read R s, filter F s, write W s, other O s, total X s, K rows, Y rows/s`.
+    fn summary(&self, total: std::time::Duration, rows: usize) -> String {
+        let secs = |d: std::time::Duration| d.as_secs_f64();
+        let other = secs(total) - secs(self.read) - secs(self.filter) - secs(self.write);
+        format!(
+            "read {:.3} s, filter {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
+            secs(self.read),
+            secs(self.filter),
+            secs(self.write),
+            other.max(0.0),
+            secs(total),
+            rows as f64 / secs(total).max(1e-9)
+        )
+    }
 }
 
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
