@@ -1,27 +1,38 @@
-//! Throughput of the filter cores without I/O, in subsystem-steps per second
-//! (`cargo bench --bench filter`). Workload of issue 5: n = 2, q = 1, m = 1, n⁺ = n⁻ = 1.
+//! Throughput of the filter cores without I/O (`cargo bench --bench filter`), on workload W of
+//! issue 5 (`bench/workload.toml`: n = 2, q = 1, m = 1, n⁺ = n⁻ = 1) with its chain length
+//! and horizon changed per benchmark. Groups:
+//! - `core`: the distributed filter on W (N = 10⁴) with one and with two threads, in
+//!   subsystem-steps per second;
+//! - `scaling`: N = 10²…10⁵ on one thread, for the linear-scaling fit (time per element flat);
+//! - `sharing`: the shared covariance recursions against per-subsystem ones (`local`, `paper`);
+//! - `centralized_vs_distributed`: time per step for N = 10, 30, 100, 300 (elements = steps).
+//!
+//! Inputs are simulated once per size, outside the timed routine (`iter_batched` builds a
+//! fresh filter per batch).
 
-use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use criterion::{BatchSize, BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use sisfilt::config::ConfigSource;
-use sisfilt::filter::{ChainFilter, TwoStepFilter, TwoStepOptions, two_step};
+use sisfilt::filter::kernel::FixedKernel;
+use sisfilt::filter::{
+    CentralizedFilter, ChainFilter, SecondMoment, TwoStepFilter, TwoStepOptions, two_step,
+};
 use sisfilt::inputs::InputStream;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
 
-/// The benchmark chain: a stable second-order subsystem with scattering coupling.
-pub fn workload(subsystems: usize, steps: usize) -> Model {
-    let text = format!(
-        "subsystems = {subsystems}\nsteps = {steps}\nseed = 1\n\
-         [interconnection]\nplus = 1\nminus = 1\n\
-         [model]\nA = [[0.9, 0.1], [-0.1, 0.8]]\nB = [[0.1, 0.05], [0.05, 0.1]]\n\
-         C = [[0.0], [0.1]]\nD = [[0.3, 0.1], [0.1, 0.3]]\nG = [[0.1, 0.2], [0.2, 0.1]]\n\
-         J = [[1.0, 0.0]]\nM = [[0.1]]\nQ = [[0.01, 0.0], [0.0, 0.01]]\n\
-         [dropout]\np = 0.8\n[initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n\
-         [input]\nkind = \"sine\"\nperiod = 50.0\nphase = 0.1\n"
-    );
-    Model::from_config(&ConfigSource::from_text("bench", ".".into(), text).unwrap()).unwrap()
+/// The kernel `two_step` picks for W.
+type Fast<'m> = TwoStepFilter<'m, FixedKernel<2, 1>>;
+
+/// Workload W with `subsystems` and `steps` replaced.
+fn workload(subsystems: usize, steps: usize) -> Model {
+    let text = include_str!("../bench/workload.toml")
+        .replace("subsystems = 10000", &format!("subsystems = {subsystems}"))
+        .replace("steps = 1000", &format!("steps = {steps}"));
+    Model::from_config(&ConfigSource::from_text("workload.toml", ".".into(), text).unwrap())
+        .unwrap()
 }
 
+/// Simulated measurements and inputs of every step.
 fn data(model: &Model) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
     let (mut ys, mut us) = (Vec::new(), Vec::new());
     let mut inputs = InputStream::open(model, None).unwrap();
@@ -34,41 +45,143 @@ fn data(model: &Model) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
     (ys, us)
 }
 
-fn distributed(c: &mut Criterion) {
-    let mut group = c.benchmark_group("distributed");
+fn run<F: ChainFilter + ?Sized>(f: &mut F, ys: &[Vec<f64>], us: &[Vec<f64>]) {
+    for (y, u) in ys.iter().zip(us) {
+        f.step(y, u).unwrap();
+    }
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+}
+
+fn core(c: &mut Criterion) {
+    let (n_sub, steps) = (10_000, 20);
+    let model = workload(n_sub, steps);
+    let (ys, us) = data(&model);
+    let mut group = c.benchmark_group("core");
+    group.sample_size(20);
+    group.throughput(Throughput::Elements((n_sub * steps) as u64));
+    for threads in [1, 2] {
+        let pool = pool(threads);
+        group.bench_with_input(BenchmarkId::new("threads", threads), &threads, |b, _| {
+            pool.install(|| {
+                b.iter_batched(
+                    || Fast::with_kernel(&model, TwoStepOptions::default()).unwrap(),
+                    |mut f| {
+                        run(&mut f, &ys, &us);
+                        f
+                    },
+                    BatchSize::LargeInput,
+                )
+            })
+        });
+    }
+    group.finish();
+}
+
+fn scaling(c: &mut Criterion) {
+    let mut group = c.benchmark_group("scaling");
     group.sample_size(10);
-    for &n_sub in &[100usize, 1000, 10_000] {
-        let steps = 20;
+    let pool = pool(1);
+    for n_sub in [100usize, 1_000, 10_000, 100_000] {
+        let steps = (1_000_000 / n_sub).clamp(10, 1000);
         let model = workload(n_sub, steps);
         let (ys, us) = data(&model);
         group.throughput(Throughput::Elements((n_sub * steps) as u64));
-        group.bench_with_input(BenchmarkId::new("fixed", n_sub), &n_sub, |b, _| {
+        group.bench_with_input(BenchmarkId::new("N", n_sub), &n_sub, |b, _| {
+            pool.install(|| {
+                b.iter_batched(
+                    || Fast::with_kernel(&model, TwoStepOptions::default()).unwrap(),
+                    |mut f| {
+                        run(&mut f, &ys, &us);
+                        f
+                    },
+                    BatchSize::LargeInput,
+                )
+            })
+        });
+    }
+    group.finish();
+}
+
+fn sharing(c: &mut Criterion) {
+    let (n_sub, steps) = (10_000, 20);
+    let model = workload(n_sub, steps);
+    let (ys, us) = data(&model);
+    let mut group = c.benchmark_group("sharing");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements((n_sub * steps) as u64));
+    let pool = pool(1);
+    for (name, second_moment) in [
+        ("local", SecondMoment::Local),
+        ("paper", SecondMoment::Paper),
+    ] {
+        let opts = TwoStepOptions {
+            second_moment,
+            ..TwoStepOptions::default()
+        };
+        for shared in [true, false] {
+            let id = BenchmarkId::new(name, if shared { "shared" } else { "per-subsystem" });
+            group.bench_function(id, |b| {
+                pool.install(|| {
+                    b.iter_batched(
+                        || {
+                            let f = Fast::with_kernel(&model, opts).unwrap();
+                            if shared { f } else { f.without_sharing() }
+                        },
+                        |mut f| {
+                            run(&mut f, &ys, &us);
+                            f
+                        },
+                        BatchSize::LargeInput,
+                    )
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+fn centralized_vs_distributed(c: &mut Criterion) {
+    let mut group = c.benchmark_group("centralized_vs_distributed");
+    group.sample_size(10);
+    for n_sub in [10usize, 30, 100, 300] {
+        let steps = match n_sub {
+            300 => 2,
+            100 => 5,
+            _ => 20,
+        };
+        let model = workload(n_sub, steps);
+        let (ys, us) = data(&model);
+        // Elements are time steps: the report reads in steps per second.
+        group.throughput(Throughput::Elements(steps as u64));
+        group.bench_with_input(BenchmarkId::new("distributed", n_sub), &n_sub, |b, _| {
             b.iter_batched(
                 || two_step(&model, TwoStepOptions::default()).unwrap(),
                 |mut f| {
-                    for (y, u) in ys.iter().zip(&us) {
-                        f.step(y, u).unwrap();
-                    }
+                    run(f.as_mut(), &ys, &us);
                     f
                 },
-                criterion::BatchSize::LargeInput,
+                BatchSize::LargeInput,
             )
         });
-        group.bench_with_input(BenchmarkId::new("dynamic", n_sub), &n_sub, |b, _| {
+        group.bench_with_input(BenchmarkId::new("centralized", n_sub), &n_sub, |b, _| {
             b.iter_batched(
-                || TwoStepFilter::new(&model, TwoStepOptions::default()).unwrap(),
+                || CentralizedFilter::new(&model, false, 1000).unwrap(),
                 |mut f| {
-                    for (y, u) in ys.iter().zip(&us) {
-                        f.step(y, u).unwrap();
-                    }
+                    run(&mut f, &ys, &us);
                     f
                 },
-                criterion::BatchSize::LargeInput,
+                BatchSize::LargeInput,
             )
         });
     }
     group.finish();
 }
 
-criterion_group!(benches, distributed);
+criterion_group!(benches, core, scaling, sharing, centralized_vs_distributed);
 criterion_main!(benches);

@@ -271,6 +271,10 @@ pub struct EstimateArgs {
     /// [default: 1e-9 when every Q is zero, else 0].
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
+    /// Print on standard error the wall-clock time spent reading the input files, filtering
+    /// and writing the estimates (a `timings:` line).
+    #[arg(long)]
+    pub timings: bool,
 }
 
 fn parse_max_memory(text: &str) -> Result<u64, String> {

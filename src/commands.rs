@@ -514,10 +514,12 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "subsystems": big_n,
         "n": n,
     });
+    let out_name = args.out.display().to_string();
     if args.smooth {
         let smoother = make_smoother(args, &model, opts, joint)?;
         let k = joint.map_or(0, |j| j.band.min(big_n - 1));
-        let writer = EstimatesWriter::new(output, format, n, k, metadata)?;
+        let writer = EstimatesWriter::new(output, format, n, k, metadata)
+            .map_err(|e| Error::io(&out_name, e))?;
         return run_smoother(
             args,
             &model,
@@ -540,8 +542,8 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         _ => two_step(&model, opts)?,
     };
     let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
-    let mut writer = EstimatesWriter::new(output, format, n, cross, metadata)?;
-    let out_name = args.out.display().to_string();
+    let mut writer = EstimatesWriter::new(output, format, n, cross, metadata)
+        .map_err(|e| Error::io(&out_name, e))?;
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * d.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
@@ -550,9 +552,21 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
     let mut warned_transfer = false;
     let mut steps = 0;
-    while let Some(t) = meas.read_step(&mut y)? {
-        inputs.next(t, &mut u)?;
-        filter.step(&y, &u)?;
+    let mut clock = PhaseClock::default();
+    loop {
+        // The measurement and input files are parsed side by side.
+        let next_t = meas.next_t();
+        let (t, inputs_read) =
+            clock.read(|| rayon::join(|| meas.read_step(&mut y), || inputs.next(next_t, &mut u)));
+        let Some(t) = t? else {
+            // The inputs were read one step ahead of the measurements' end.
+            if let (Ok(()), Some(e)) = (&inputs_read, inputs.read_beyond(steps)) {
+                return Err(e.into());
+            }
+            break;
+        };
+        inputs_read?;
+        clock.filter(|| filter.step(&y, &u))?;
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
             warn(format!(
@@ -565,20 +579,12 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         } else {
             filter.filtered()
         };
-        let band = filter.covariance_band(args.predicted);
-        for i in 0..big_n {
-            writer
-                .row(
-                    t,
-                    i + 1,
-                    &x_hat[i * n..(i + 1) * n],
-                    &p_hat[i * n * n..(i + 1) * n * n],
-                    |d| band.and_then(|(b, _)| (i + d < big_n).then(|| b.block(i, d))),
-                )
-                .map_err(|e| Error::io(&out_name, e))?;
-        }
+        let band = filter.covariance_band(args.predicted).map(|(b, _)| b);
+        clock
+            .write(|| writer.write_step(t, x_hat, p_hat, band))
+            .map_err(|e| Error::io(&out_name, e))?;
         if let Some(truth) = truth.as_mut() {
-            if truth.read_step(&mut x_true)?.is_none() {
+            if clock.read(|| truth.read_step(&mut x_true))?.is_none() {
                 return Err(Error::File {
                     file: truth.name().to_string(),
                     msg: format!(
@@ -625,7 +631,11 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     if let Some(r) = &report {
         report_accuracy(r);
     }
-    writer.finish(report.as_ref())?;
+    clock.write(|| writer.commit(report.as_ref()))?;
+    if args.timings {
+        let rows = steps * big_n;
+        eprintln!("timings: {}", clock.summary(started.elapsed(), rows));
+    }
     Ok(())
 }
 
@@ -723,16 +733,10 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     let mut accuracy = Accuracy::new(n);
     for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
         let band = smoothed.bands.as_ref().map(|b| &b[idx]);
+        writer
+            .write_step(idx + 1, x, p, band)
+            .map_err(|e| Error::io(&out_name, e))?;
         for i in 0..big_n {
-            writer
-                .row(
-                    idx + 1,
-                    i + 1,
-                    &x[i * n..(i + 1) * n],
-                    &p[i * n * n..(i + 1) * n * n],
-                    |d| band.and_then(|b| (i + d < big_n && d <= b.width()).then(|| b.block(i, d))),
-                )
-                .map_err(|e| Error::io(&out_name, e))?;
             if let Some(row) = truth_rows.get(idx) {
                 accuracy.add(
                     &row[i * (n + 1)..i * (n + 1) + n],
@@ -746,8 +750,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     if let Some(r) = &report {
         report_accuracy(r);
     }
-    writer.finish(report.as_ref())?;
-    Ok(())
+    Ok(writer.commit(report.as_ref())?)
 }
 
 /// The joint filter's options from the command line (`None` for the other filters, which
@@ -789,6 +792,50 @@ fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
         second_moment,
         dropouts: args.dropouts,
     }))
+}
+
+/// Wall-clock time spent in each phase of `estimate` (`--timings`).
+#[derive(Default)]
+struct PhaseClock {
+    read: std::time::Duration,
+    filter: std::time::Duration,
+    write: std::time::Duration,
+}
+
+impl PhaseClock {
+    fn time<R>(slot: &mut std::time::Duration, f: impl FnOnce() -> R) -> R {
+        let start = std::time::Instant::now();
+        let r = f();
+        *slot += start.elapsed();
+        r
+    }
+
+    fn read<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.read, f)
+    }
+
+    fn filter<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.filter, f)
+    }
+
+    fn write<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.write, f)
+    }
+
+    /// `read R s, filter F s, write W s, other O s, total X s, K rows, Y rows/s`.
+    fn summary(&self, total: std::time::Duration, rows: usize) -> String {
+        let secs = |d: std::time::Duration| d.as_secs_f64();
+        let other = secs(total) - secs(self.read) - secs(self.filter) - secs(self.write);
+        format!(
+            "read {:.3} s, filter {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
+            secs(self.read),
+            secs(self.filter),
+            secs(self.write),
+            other.max(0.0),
+            secs(total),
+            rows as f64 / secs(total).max(1e-9)
+        )
+    }
 }
 
 /// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.

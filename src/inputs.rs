@@ -14,7 +14,7 @@ pub enum InputStream {
     /// Computed from the config's `[input]` (also the case `m = 0`).
     Generated { spec: InputSpec, m: usize },
     /// Read from a CSV file.
-    File(Box<StepReader<Box<dyn Read>>>),
+    File(Box<StepReader<Box<dyn Read + Send>>>),
 }
 
 /// The layout of an inputs file with `m` inputs.
@@ -33,8 +33,8 @@ pub fn open_csv(
     path: &Path,
     layout: StepLayout,
     subsystems: usize,
-) -> Result<StepReader<Box<dyn Read>>> {
-    let source: Box<dyn Read> = if path.as_os_str() == "-" {
+) -> Result<StepReader<Box<dyn Read + Send>>> {
+    let source: Box<dyn Read + Send> = if path.as_os_str() == "-" {
         Box::new(std::io::stdin())
     } else {
         Box::new(File::open(path).map_err(|e| Error::io(path, e))?)
@@ -93,19 +93,30 @@ impl InputStream {
         }
     }
 
+    /// The error for a file that held step `steps + 1` (already read by [`InputStream::next`]);
+    /// `None` for generated inputs.
+    pub fn read_beyond(&self, steps: usize) -> Option<Error> {
+        match self {
+            InputStream::File(r) => Some(too_long(r.name(), steps)),
+            InputStream::Generated { .. } => None,
+        }
+    }
+
     /// Checks that a file held no steps beyond `steps` (SPEC §6: exactly `1..T`).
     pub fn finish(self, steps: usize) -> Result<()> {
         if let InputStream::File(mut r) = self {
             let mut scratch = vec![0.0; r.row_values()];
             if r.read_step(&mut scratch)?.is_some() {
-                return Err(Error::File {
-                    file: r.name().to_string(),
-                    msg: format!(
-                        "holds steps beyond t = {steps}; expected exactly the steps 1..{steps}"
-                    ),
-                });
+                return Err(too_long(r.name(), steps));
             }
         }
         Ok(())
+    }
+}
+
+fn too_long(name: &str, steps: usize) -> Error {
+    Error::File {
+        file: name.to_string(),
+        msg: format!("holds steps beyond t = {steps}; expected exactly the steps 1..{steps}"),
     }
 }

@@ -31,6 +31,25 @@ impl StepLayout {
     }
 }
 
+/// A plain decimal integer (what `usize::from_str` accepts, without its allocation-free but
+/// slower UTF-8 round trip); `None` when empty, not all digits, or too large.
+#[inline]
+fn parse_index(bytes: &[u8]) -> Option<usize> {
+    let digits = bytes.strip_prefix(b"+").unwrap_or(bytes);
+    if digits.is_empty() {
+        return None;
+    }
+    let mut value: usize = 0;
+    for &b in digits {
+        let d = b.wrapping_sub(b'0');
+        if d > 9 {
+            return None;
+        }
+        value = value.checked_mul(10)?.checked_add(d as usize)?;
+    }
+    Some(value)
+}
+
 /// Reads a `t,i,…` CSV one time step (all `N` subsystems) at a time.
 pub struct StepReader<R: Read> {
     name: String,
@@ -210,13 +229,12 @@ impl<R: Read> StepReader<R> {
 
     fn index(&self, line: u64, col: usize, what: &str) -> Result<usize> {
         let field = self.record.get(col).unwrap_or_default();
-        let text = String::from_utf8_lossy(field);
-        text.trim().parse::<usize>().map_err(|_| {
+        parse_index(field.trim_ascii()).ok_or_else(|| {
             self.err(
                 line,
                 format!(
                     "column `{what}`: expected a positive integer, found `{}`",
-                    text.escape_debug()
+                    String::from_utf8_lossy(field).escape_debug()
                 ),
             )
         })
@@ -224,7 +242,7 @@ impl<R: Read> StepReader<R> {
 
     fn number(&self, line: u64, col: usize) -> Result<f64> {
         let field = self.record.get(col).unwrap_or_default();
-        let Ok(text) = std::str::from_utf8(field).map(str::trim) else {
+        let Ok(text) = std::str::from_utf8(field.trim_ascii()) else {
             return Err(self.err(
                 line,
                 format!(
@@ -257,6 +275,37 @@ impl<R: Read> StepReader<R> {
                     String::from_utf8_lossy(field).escape_debug()
                 ),
             )),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_index;
+
+    #[test]
+    fn index_parsing_matches_the_standard_library() {
+        for text in [
+            "0",
+            "1",
+            "+7",
+            "0012",
+            "18446744073709551615",
+            "18446744073709551616",
+            "",
+            "+",
+            "-1",
+            "1.0",
+            "1e3",
+            " 1",
+            "x",
+            "99999999999999999999",
+        ] {
+            assert_eq!(
+                parse_index(text.as_bytes()),
+                text.parse::<usize>().ok(),
+                "{text:?}"
+            );
         }
     }
 }

@@ -4,6 +4,65 @@
 
 use std::io::Write;
 
+/// Number formatting of the CSV and JSON rows: shortest round-trip floats (`ryu`), integers
+/// with `itoa`, appended to a byte buffer.
+pub struct NumberFormat<'a> {
+    pub ryu: &'a mut ryu::Buffer,
+    pub itoa: &'a mut itoa::Buffer,
+}
+
+impl NumberFormat<'_> {
+    /// Appends the line `t,i,v1,…\n`; a NaN value is an empty cell (a lost measurement).
+    #[inline]
+    pub fn csv_row(
+        &mut self,
+        line: &mut Vec<u8>,
+        t: usize,
+        i: usize,
+        values: impl Iterator<Item = f64>,
+    ) {
+        line.extend_from_slice(self.itoa.format(t).as_bytes());
+        line.push(b',');
+        line.extend_from_slice(self.itoa.format(i).as_bytes());
+        for v in values {
+            line.push(b',');
+            if !v.is_nan() {
+                line.extend_from_slice(self.ryu.format(v).as_bytes());
+            }
+        }
+        line.push(b'\n');
+    }
+
+    /// Appends the JSON array `[t,i,v1,…]`, preceded by a comma unless `first`; a value that
+    /// is not finite is `null`.
+    #[inline]
+    pub fn json_row(
+        &mut self,
+        line: &mut Vec<u8>,
+        first: bool,
+        t: usize,
+        i: usize,
+        values: impl Iterator<Item = f64>,
+    ) {
+        if !first {
+            line.push(b',');
+        }
+        line.push(b'[');
+        line.extend_from_slice(self.itoa.format(t).as_bytes());
+        line.push(b',');
+        line.extend_from_slice(self.itoa.format(i).as_bytes());
+        for v in values {
+            line.push(b',');
+            if v.is_finite() {
+                line.extend_from_slice(self.ryu.format_finite(v).as_bytes());
+            } else {
+                line.extend_from_slice(b"null");
+            }
+        }
+        line.push(b']');
+    }
+}
+
 /// Writes `t,i,values…` rows.
 pub struct CsvWriter<W: Write> {
     out: W,
@@ -35,20 +94,17 @@ impl<W: Write> CsvWriter<W> {
         tail: Option<u8>,
     ) -> std::io::Result<()> {
         self.line.clear();
-        self.line.extend_from_slice(self.itoa.format(t).as_bytes());
-        self.line.push(b',');
-        self.line.extend_from_slice(self.itoa.format(i).as_bytes());
-        for &v in values {
-            self.line.push(b',');
-            if !v.is_nan() {
-                self.line.extend_from_slice(self.ryu.format(v).as_bytes());
-            }
-        }
+        let mut fmt = NumberFormat {
+            ryu: &mut self.ryu,
+            itoa: &mut self.itoa,
+        };
+        fmt.csv_row(&mut self.line, t, i, values.iter().copied());
         if let Some(k) = tail {
+            self.line.pop();
             self.line.push(b',');
             self.line.extend_from_slice(self.itoa.format(k).as_bytes());
+            self.line.push(b'\n');
         }
-        self.line.push(b'\n');
         self.out.write_all(&self.line)
     }
 

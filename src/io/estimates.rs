@@ -9,8 +9,12 @@ use std::io::Write;
 use serde::Serialize;
 
 use crate::accuracy::AccuracyReport;
+use crate::band::SymBand;
 use crate::error::{Error, Result};
-use crate::io::{CsvWriter, Output};
+use rayon::prelude::*;
+
+use crate::io::Output;
+use crate::io::csv_out::NumberFormat;
 
 /// Output format of `estimate`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -46,43 +50,48 @@ pub fn cross_covariance_header(n: usize, k: usize) -> Vec<String> {
     h
 }
 
-/// Streams estimate rows to CSV or JSON.
-pub struct EstimatesWriter {
+/// Rows formatted per batch: bounds the writer's memory whatever `N`.
+const BATCH_ROWS: usize = 1 << 16;
+/// Steps with at least this many rows are formatted in parallel.
+const PARALLEL_MIN_ROWS: usize = 4096;
+/// Rows per parallel chunk, at most.
+const CHUNK_ROWS: usize = 1 << 14;
+
+/// Streams the estimates of one time step at a time to CSV or JSON. The rows of a step are
+/// formatted into reused buffers, in parallel chunks on long chains (the bytes do not depend
+/// on the thread count), and written in order.
+pub struct EstimatesWriter<W: Write = Output> {
+    out: W,
     n: usize,
-    /// Cross-covariance blocks per JSON row (`k`; 0 for none).
+    /// Cross-covariance blocks per JSON row (`k`; 0 for none and for CSV).
     cross: usize,
-    row: Vec<f64>,
-    kind: Kind,
+    format: Format,
+    /// No row written yet (the first JSON row has no leading comma).
+    first: bool,
+    /// One buffer per chunk, sized once for the longest possible rows.
+    buffers: Vec<Vec<u8>>,
 }
 
-enum Kind {
-    Csv(CsvWriter<Output>),
-    Json {
-        out: Output,
-        first: bool,
-        ryu: ryu::Buffer,
-    },
-}
-
-impl EstimatesWriter {
-    /// Starts the output; for JSON, `metadata` (an object) opens the document and each row
-    /// carries `cross` cross-covariance blocks (see [`cross_covariance_header`]).
+impl<W: Write> EstimatesWriter<W> {
+    /// Starts the output: the CSV header, or for JSON `metadata` (an object) opening the
+    /// document, with `cross` cross-covariance blocks per row (see
+    /// [`cross_covariance_header`]).
     pub fn new(
-        out: Output,
+        mut out: W,
         format: Format,
         n: usize,
         cross: usize,
         metadata: serde_json::Value,
-    ) -> Result<Self> {
+    ) -> std::io::Result<Self> {
         let mut header = estimates_header(n);
-        let name = out.name();
-        let kind = match format {
+        let cross = if format == Format::Json { cross } else { 0 };
+        header.extend(cross_covariance_header(n, cross));
+        match format {
             Format::Csv => {
-                Kind::Csv(CsvWriter::new(out, &header).map_err(|e| Error::io(&name, e))?)
+                out.write_all(header.join(",").as_bytes())?;
+                out.write_all(b"\n")?;
             }
             Format::Json => {
-                header.extend(cross_covariance_header(n, cross));
-                let mut out = out;
                 let mut text = serde_json::to_string(&metadata).expect("metadata serialises");
                 text.pop(); // reopen the object
                 if text.len() > 1 {
@@ -91,86 +100,173 @@ impl EstimatesWriter {
                 text.push_str("\"columns\":");
                 text.push_str(&serde_json::to_string(&header).expect("header serialises"));
                 text.push_str(",\"estimates\":[");
-                out.write_all(text.as_bytes())
-                    .map_err(|e| Error::io(&name, e))?;
-                Kind::Json {
-                    out,
-                    first: true,
-                    ryu: ryu::Buffer::new(),
-                }
+                out.write_all(text.as_bytes())?;
             }
-        };
+        }
         Ok(Self {
+            out,
             n,
-            cross: if format == Format::Json { cross } else { 0 },
-            row: Vec::with_capacity(n + n * (n + 1) / 2 + cross * n * n),
-            kind,
+            cross,
+            format,
+            first: true,
+            buffers: Vec::new(),
         })
     }
 
-    /// Writes the row of `(t, i)` from `x̂` (`n`) and `P` (`n × n`, column-major); `cross`
-    /// gives the block `P_{i,i+d}` (column-major) for `d = 1..k`, or `None` past the chain's end.
-    pub fn row<'a>(
+    /// Writes the rows `(t, 1..N)` from `x̂` (`N·n`) and `P` (`N` blocks `n × n`,
+    /// column-major); in JSON with `cross > 0`, also the blocks `(i, i+d)` of `band`.
+    pub fn write_step(
         &mut self,
         t: usize,
-        i: usize,
         x: &[f64],
         p: &[f64],
-        cross: impl Fn(usize) -> Option<&'a [f64]>,
+        band: Option<&SymBand>,
     ) -> std::io::Result<()> {
         let n = self.n;
-        self.row.clear();
-        self.row.extend_from_slice(x);
-        for r in 0..n {
-            for c in r..n {
-                self.row.push(p[c * n + r]);
+        let cross = if band.is_some() { self.cross } else { 0 };
+        let rows = x.len() / n;
+        let threads = rayon::current_num_threads();
+        let parallel = rows >= PARALLEL_MIN_ROWS && threads > 1;
+        let (format, first) = (self.format, self.first);
+        let values = n + n * (n + 1) / 2 + cross * n * n;
+        // t, i (20 digits each), brackets and commas, each value at most 24 characters.
+        let max_row = 45 + 25 * values;
+        let mut start = 0;
+        while start < rows {
+            let batch = (rows - start).min(BATCH_ROWS);
+            let chunks = if parallel {
+                threads.max(batch.div_ceil(CHUNK_ROWS)).min(batch)
+            } else {
+                1
+            };
+            let per_chunk = batch.div_ceil(chunks);
+            if self.buffers.len() < chunks {
+                self.buffers.resize_with(chunks, Vec::new);
             }
+            let format_chunk = |(c, buf): (usize, &mut Vec<u8>)| {
+                buf.clear();
+                buf.reserve(per_chunk * max_row);
+                let (mut ryu, mut itoa) = (ryu::Buffer::new(), itoa::Buffer::new());
+                let mut fmt = NumberFormat {
+                    ryu: &mut ryu,
+                    itoa: &mut itoa,
+                };
+                let from = start + c * per_chunk;
+                for i in from..(from + per_chunk).min(start + batch) {
+                    let block = &p[i * n * n..(i + 1) * n * n];
+                    let upper = (0..n).flat_map(move |r| (r..n).map(move |c| block[c * n + r]));
+                    let blocks = (1..=cross).flat_map(move |d| {
+                        let b = band.filter(|_| i + d < rows).map(|b| b.block(i, d));
+                        (0..n * n).map(move |e| b.map_or(f64::NAN, |b| b[(e % n) * n + e / n]))
+                    });
+                    let row = x[i * n..(i + 1) * n]
+                        .iter()
+                        .copied()
+                        .chain(upper)
+                        .chain(blocks);
+                    match format {
+                        Format::Csv => fmt.csv_row(buf, t, i + 1, row),
+                        Format::Json => fmt.json_row(buf, first && i == 0, t, i + 1, row),
+                    }
+                }
+            };
+            if parallel {
+                self.buffers[..chunks]
+                    .par_iter_mut()
+                    .enumerate()
+                    .for_each(format_chunk);
+            } else {
+                self.buffers[..chunks]
+                    .iter_mut()
+                    .enumerate()
+                    .for_each(format_chunk);
+            }
+            for buf in &self.buffers[..chunks] {
+                self.out.write_all(buf)?;
+            }
+            start += batch;
         }
-        for d in 1..=self.cross {
-            match cross(d) {
-                Some(b) => {
-                    for r in 0..n {
-                        for c in 0..n {
-                            self.row.push(b[c * n + r]);
+        self.first &= rows == 0;
+        Ok(())
+    }
+
+    /// Closes the document (JSON gets `accuracy`, or `null`), flushes and returns the writer.
+    pub fn finish(mut self, accuracy: Option<&AccuracyReport>) -> std::io::Result<W> {
+        if self.format == Format::Json {
+            let acc = serde_json::to_string(&accuracy).expect("accuracy serialises");
+            writeln!(self.out, "],\"accuracy\":{acc}}}")?;
+        }
+        self.out.flush()?;
+        Ok(self.out)
+    }
+}
+
+impl EstimatesWriter<Output> {
+    /// [`EstimatesWriter::finish`], then commits the output (renames a file into place).
+    pub fn commit(self, accuracy: Option<&AccuracyReport>) -> Result<()> {
+        let out = self
+            .finish(accuracy)
+            .map_err(|e| Error::io("<output>", e))?;
+        out.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rows written by the parallel chunked path equal rows formatted one by one.
+    #[test]
+    fn chunked_rows_equal_single_rows() {
+        let (n, rows) = (2, 5000);
+        let x: Vec<f64> = (0..rows * n)
+            .map(|k| (k as f64 * 0.37).sin() * 1e3)
+            .collect();
+        let p: Vec<f64> = (0..rows * n * n).map(|k| (k as f64).cos() / 7.0).collect();
+        for format in [Format::Csv, Format::Json] {
+            let mut expected = Vec::new();
+            let (mut ryu, mut itoa) = (ryu::Buffer::new(), itoa::Buffer::new());
+            let mut fmt = NumberFormat {
+                ryu: &mut ryu,
+                itoa: &mut itoa,
+            };
+            for t in 1..=2 {
+                for i in 0..rows {
+                    let b = &p[i * 4..i * 4 + 4];
+                    let row = [x[2 * i], x[2 * i + 1], b[0], b[2], b[3]].into_iter();
+                    match format {
+                        Format::Csv => fmt.csv_row(&mut expected, t, i + 1, row),
+                        Format::Json => {
+                            fmt.json_row(&mut expected, t == 1 && i == 0, t, i + 1, row)
                         }
                     }
                 }
-                None => self.row.extend(std::iter::repeat_n(f64::NAN, n * n)),
             }
-        }
-        match &mut self.kind {
-            Kind::Csv(w) => w.row(t, i, &self.row, None),
-            Kind::Json { out, first, ryu } => {
-                if !*first {
-                    out.write_all(b",")?;
-                }
-                *first = false;
-                write!(out, "[{t},{i}")?;
-                for v in &self.row {
-                    out.write_all(b",")?;
-                    if v.is_finite() {
-                        out.write_all(ryu.format_finite(*v).as_bytes())?;
-                    } else {
-                        out.write_all(b"null")?;
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let bytes = pool.install(|| {
+                    let mut w =
+                        EstimatesWriter::new(Vec::new(), format, n, 0, serde_json::json!({}))
+                            .unwrap();
+                    w.write_step(1, &x, &p, None).unwrap();
+                    w.write_step(2, &x, &p, None).unwrap();
+                    w.finish(None).unwrap()
+                });
+                let header = match format {
+                    Format::Csv => "t,i,x1,x2,P1_1,P1_2,P2_2\n".to_string(),
+                    Format::Json => {
+                        "{\"columns\":[\"t\",\"i\",\"x1\",\"x2\",\"P1_1\",\"P1_2\",\"P2_2\"],\"estimates\":[".to_string()
                     }
+                };
+                let mut want = header.into_bytes();
+                want.extend_from_slice(&expected);
+                if format == Format::Json {
+                    want.extend_from_slice(b"],\"accuracy\":null}\n");
                 }
-                out.write_all(b"]")
-            }
-        }
-    }
-
-    /// Closes the document (JSON gets `accuracy`, or `null`) and commits the output.
-    pub fn finish(self, accuracy: Option<&AccuracyReport>) -> Result<()> {
-        match self.kind {
-            Kind::Csv(w) => {
-                let out = w.into_inner().map_err(|e| Error::io("<output>", e))?;
-                out.commit()
-            }
-            Kind::Json { mut out, .. } => {
-                let name = out.name();
-                let acc = serde_json::to_string(&accuracy).expect("accuracy serialises");
-                writeln!(out, "],\"accuracy\":{acc}}}").map_err(|e| Error::io(&name, e))?;
-                out.commit()
+                assert!(bytes == want, "{format:?} with {threads} threads");
             }
         }
     }

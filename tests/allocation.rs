@@ -1,0 +1,194 @@
+//! The hot loops allocate nothing: a counting global allocator records every allocation while
+//! the filter runs its steps after the first ones (step 1 may size buffers, and a change of
+//! parameters between override windows may refactorise step 1's system), for each filter
+//! variant, sequential and in parallel, and while the CSV reader and the estimates writer
+//! stream their steps.
+//!
+//! One test function only: the counter is global, and test functions run in parallel.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use sisfilt::config::ConfigSource;
+use sisfilt::filter::kernel::DynamicKernel;
+use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions};
+use sisfilt::interconnect::SolverKind;
+use sisfilt::io::estimates::{EstimatesWriter, Format};
+use sisfilt::io::{StepLayout, StepReader};
+use sisfilt::model::Model;
+
+struct Counting;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations_in(f: impl FnOnce()) -> usize {
+    let before = ALLOCATIONS.load(Ordering::SeqCst);
+    f();
+    ALLOCATIONS.load(Ordering::SeqCst) - before
+}
+
+fn model(subsystems: usize, p: &str, extra: &str) -> Model {
+    let text = format!(
+        "subsystems = {subsystems}\nsteps = 10\n[interconnection]\nplus = 1\nminus = 1\n\
+         [model]\nA = [[0.9, 0.1], [-0.1, 0.8]]\nB = [[0.1, 0.05], [0.05, 0.1]]\n\
+         C = [[0.0], [0.1]]\nD = [[0.3, 0.1], [0.1, 0.3]]\nG = [[0.1, 0.2], [0.2, 0.1]]\n\
+         J = [[1.0, 0.0]]\nR = [[0.1]]\nM = [[0.1]]\nQ = [[0.01, 0.0], [0.0, 0.01]]\n\
+         [dropout]\np = {p}\n[initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n\
+         [input]\nkind = \"sine\"\nperiod = 5.0\nphase = 0.1\n{extra}"
+    );
+    Model::from_config(&ConfigSource::from_text("alloc.toml", ".".into(), text).unwrap()).unwrap()
+}
+
+/// Runs 10 steps; returns the allocations of steps 5..10, after every window change of the
+/// models below. With `known`, every third measurement is lost (an empty cell, NaN).
+fn steps_allocate(filter: &mut dyn ChainFilter, model: &Model, known: bool) -> usize {
+    let (big_n, q, m) = (model.subsystems, model.dims.q, model.dims.m);
+    let mut y: Vec<f64> = (0..big_n * q).map(|k| (k as f64 * 0.3).sin()).collect();
+    if known {
+        y.iter_mut().step_by(3).for_each(|v| *v = f64::NAN);
+    }
+    let u: Vec<f64> = (0..big_n * m).map(|k| (k as f64 * 0.7).cos()).collect();
+    for _ in 1..=4 {
+        filter.step(&y, &u).unwrap();
+    }
+    allocations_in(|| {
+        for _ in 5..=10 {
+            filter.step(&y, &u).unwrap();
+        }
+    })
+}
+
+#[test]
+fn steps_after_the_first_allocate_nothing() {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    pool.broadcast(|_| ());
+    let homogeneous = model(50, "0.8", "");
+    let varying = model(
+        50,
+        "0.8",
+        "[[override]]\nsubsystems = [3, 9]\nA = [[0.8, 0.0], [0.0, 0.7]]\nG = [[0.2, 0.1], [0.1, 0.2]]\n\
+         [[override]]\nsteps = [2, 3]\nG = [[0.2, 0.0], [0.0, 0.2]]\n",
+    );
+    // Long enough for the parallel path (4096 subsystems and more).
+    let long = model(5000, "0.8", "");
+    let long_varying = model(
+        5000,
+        "0.8",
+        "[[override]]\nsubsystems = [1, 2500]\nA = [[0.8, 0.0], [0.0, 0.7]]\n",
+    );
+    let mut cases: Vec<(String, &Model, TwoStepOptions)> = Vec::new();
+    for (name, model) in [
+        ("homogeneous", &homogeneous),
+        ("varying", &varying),
+        ("long", &long),
+        ("long varying", &long_varying),
+    ] {
+        for second_moment in [SecondMoment::Local, SecondMoment::Paper] {
+            for dropouts in [Dropouts::Unknown, Dropouts::Known] {
+                // The transfer recursion overflows on long chains (SPEC §2).
+                let solvers: &[SolverKind] = if model.subsystems > 100 {
+                    &[SolverKind::Banded]
+                } else {
+                    &[SolverKind::Banded, SolverKind::Transfer]
+                };
+                for &solver in solvers {
+                    let opts = TwoStepOptions {
+                        second_moment,
+                        dropouts,
+                        solver,
+                        ..TwoStepOptions::default()
+                    };
+                    cases.push((format!("{name} {opts:?}"), model, opts));
+                }
+            }
+        }
+    }
+    for (name, model, opts) in &cases {
+        let known = opts.dropouts == Dropouts::Known;
+        pool.install(|| {
+            let mut fixed = sisfilt::filter::two_step(model, *opts).unwrap();
+            let count = steps_allocate(fixed.as_mut(), model, known);
+            assert_eq!(count, 0, "{name}, compile-time sizes: {count} allocations");
+            let mut dynamic = TwoStepFilter::<DynamicKernel>::new(model, *opts).unwrap();
+            let count = steps_allocate(&mut dynamic, model, known);
+            assert_eq!(count, 0, "{name}, dynamic sizes: {count} allocations");
+            let mut unshared = TwoStepFilter::<DynamicKernel>::new(model, *opts)
+                .unwrap()
+                .without_sharing();
+            let count = steps_allocate(&mut unshared, model, known);
+            assert_eq!(count, 0, "{name}, without sharing: {count} allocations");
+        });
+    }
+
+    // The streaming reader and the estimates writer, one and two threads.
+    let (big_n, steps) = (5000, 6);
+    let mut csv = String::from("t,i,y1\n");
+    for t in 1..=steps {
+        for i in 1..=big_n {
+            csv += &format!("{t},{i},{}\n", (t * i) as f64 * 0.001 - 0.3);
+        }
+    }
+    let layout = StepLayout {
+        prefix: "y",
+        width: 1,
+        extra: &[],
+        allow_empty: false,
+        empty_hint: "",
+    };
+    let x: Vec<f64> = (0..big_n * 2).map(|k| k as f64 / 3.0).collect();
+    let p: Vec<f64> = (0..big_n * 4).map(|k| k as f64 / 7.0).collect();
+    for threads in [1, 2] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        // Start every worker before counting: a worker's first job allocates its thread
+        // state, and the counter sees every thread's allocations.
+        pool.broadcast(|_| ());
+        pool.install(|| {
+            let mut reader =
+                StepReader::new("m.csv", csv.as_bytes(), layout.clone(), big_n).unwrap();
+            let mut y = vec![0.0; big_n];
+            reader.read_step(&mut y).unwrap();
+            let count = allocations_in(|| while reader.read_step(&mut y).unwrap().is_some() {});
+            assert_eq!(count, 0, "reader, {threads} threads: {count} allocations");
+            for format in [Format::Csv, Format::Json] {
+                let mut writer =
+                    EstimatesWriter::new(std::io::sink(), format, 2, 0, serde_json::json!({}))
+                        .unwrap();
+                writer.write_step(1, &x, &p, None).unwrap();
+                let count = allocations_in(|| {
+                    for t in 2..=steps {
+                        writer.write_step(t, &x, &p, None).unwrap();
+                    }
+                });
+                assert_eq!(
+                    count, 0,
+                    "writer {format:?}, {threads} threads: {count} allocations"
+                );
+            }
+        });
+    }
+}
