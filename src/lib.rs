@@ -26,6 +26,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod accuracy;
+pub mod band;
 pub mod band_lu;
 pub mod cli;
 pub mod commands;

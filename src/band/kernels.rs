@@ -1,0 +1,1 @@
+//! Small dense kernels on column-major slices for the block-band operations.
