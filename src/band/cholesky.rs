@@ -1,20 +1,26 @@
 //! SPEC §9 update steps 4–6: block-banded Cholesky, solves and selected inversion.
 
+use super::kernels::{block_mul_add, chol_lower, nt_acc, symmetrise, tn_strip_sub, tri_lower_inv};
 use super::{BandError, SymBand};
 
 /// Block-banded Cholesky factor `Λ = L Lᵀ` (`L` lower block-banded with bandwidth `k`) of a
 /// symmetric positive definite [`SymBand`] of width `k`, with the solves and the block
 /// selected inversion of SPEC §9 update steps 4–6.
-#[allow(dead_code)] // stub commit: the fields are used once the bodies land
 #[derive(Debug, Clone)]
 pub struct BandCholesky {
     nb: usize,
     bs: usize,
     k: usize,
-    /// `L_{j+d, j}`, `d = 0..=k`, at `(j (k+1) + d) bs²`, column-major; slots past `nb` zero.
+    /// Block column `j` of `L`: `L_{j+d, j}`, `d = 0..=k`, at `(j (k+1) + d) bs²`,
+    /// column-major; slots with `j + d ≥ nb` are zero.
     l: Vec<f64>,
-    /// `L_jj⁻¹` at `j bs²`.
+    /// `L_jj⁻¹` at `j bs²` (lower triangular).
     l_diag_inv: Vec<f64>,
+    /// Selected inversion scratch: `E_{j+d, j} = L_{j+d, j} L_jj⁻¹`, `d = 1..=k`, at
+    /// `(d−1) bs²`.
+    e: Vec<f64>,
+    /// Two scratch blocks.
+    tmp: Vec<f64>,
 }
 
 impl BandCholesky {
@@ -28,6 +34,8 @@ impl BandCholesky {
             k,
             l: vec![0.0; nb * (k + 1) * bb],
             l_diag_inv: vec![0.0; nb * bb],
+            e: vec![0.0; k * bb],
+            tmp: vec![0.0; 2 * bb],
         }
     }
 
@@ -46,29 +54,185 @@ impl BandCholesky {
         self.k
     }
 
-    /// Reserves the buffers [`BandCholesky::selected_inverse`] needs up to width `w`.
-    pub fn reserve_width(&mut self, w: usize) {
-        let _ = w;
+    /// Kept for the API: [`BandCholesky::selected_inverse`] writes into its output directly
+    /// and needs no buffer that depends on the output width.
+    pub fn reserve_width(&mut self, _w: usize) {}
+
+    #[inline]
+    fn l_off(&self, i: usize, j: usize) -> usize {
+        debug_assert!(j <= i && i - j <= self.k && i < self.nb);
+        (j * (self.k + 1) + i - j) * self.bs * self.bs
     }
 
-    /// SPEC §9 update step 4: factorises `a = L Lᵀ` (`a.width() == k`). Fails with
-    /// [`BandError::PivotNotPositiveDefinite`] naming the first pivot block that is not
-    /// positive definite.
+    /// Block `L_{i,j}` (`0 ≤ i − j ≤ k`) of the factor, column-major.
+    #[inline]
+    pub fn l_block(&self, i: usize, j: usize) -> &[f64] {
+        let o = self.l_off(i, j);
+        &self.l[o..o + self.bs * self.bs]
+    }
+
+    /// SPEC §9 update step 4: factorises `a = L Lᵀ` (`a.width() == k`) block column by block
+    /// column (left-looking), for `j = 0..nb`:
+    ///
+    /// `L_jj L_jjᵀ = Λ_jj − Σ_{l=j−k}^{j−1} L_{j,l} L_{j,l}ᵀ`,
+    /// `L_{i,j} = (Λ_{i,j} − Σ_{l=i−k}^{j−1} L_{i,l} L_{j,l}ᵀ) L_jj⁻ᵀ`, `i = j+1..=j+k`.
+    ///
+    /// Fails with [`BandError::PivotNotPositiveDefinite`] naming the first pivot block whose
+    /// Schur complement is not numerically positive definite. Cost `≈ (k²/2 + 2k) bs³` per
+    /// block row.
     pub fn factor(&mut self, a: &SymBand) -> Result<(), BandError> {
-        let _ = a;
-        unimplemented!()
+        let (nb, bs, k) = (self.nb, self.bs, self.k);
+        assert_eq!((a.nb(), a.bs(), a.width()), (nb, bs, k), "matrix shape");
+        let bb = bs * bs;
+        let off = |i: usize, j: usize| (j * (k + 1) + i - j) * bb;
+        let (l, l_diag_inv) = (&mut self.l, &mut self.l_diag_inv);
+        let (pivot, s) = self.tmp.split_at_mut(bb);
+        for j in 0..nb {
+            // Pivot: Λ_jj − Σ_l L_{j,l} L_{j,l}ᵀ, Cholesky in place.
+            pivot.copy_from_slice(a.block(j, 0));
+            for p in j.saturating_sub(k)..j {
+                let ljp = &l[off(j, p)..off(j, p) + bb];
+                nt_acc(bs, pivot, ljp, ljp, -1.0);
+            }
+            if !chol_lower(bs, pivot) {
+                return Err(BandError::PivotNotPositiveDefinite { block: j });
+            }
+            l[off(j, j)..off(j, j) + bb].copy_from_slice(pivot);
+            let inv = &mut l_diag_inv[j * bb..(j + 1) * bb];
+            tri_lower_inv(bs, pivot, inv);
+            // Off-diagonal blocks of column j.
+            for i in j + 1..=(j + k).min(nb - 1) {
+                // Λ_{i,j} = (stored Λ_{j,i})ᵀ.
+                let aji = a.block(j, i - j);
+                for c in 0..bs {
+                    for r in 0..bs {
+                        s[r + c * bs] = aji[c + r * bs];
+                    }
+                }
+                for p in i.saturating_sub(k)..j {
+                    let (oi, oj) = (off(i, p), off(j, p));
+                    nt_acc(bs, s, &l[oi..oi + bb], &l[oj..oj + bb], -1.0);
+                }
+                let lij = &mut l[off(i, j)..off(i, j) + bb];
+                lij.fill(0.0);
+                block_mul_add(bs, lij, 1.0, s, false, inv, true);
+            }
+        }
+        Ok(())
     }
 
-    /// SPEC §9 update step 5: `x ← Λ⁻¹ x` by forward then back substitution
-    /// (`x.len() == nb·bs`).
+    /// SPEC §9 update step 5: `x ← Λ⁻¹ x` (`x.len() == nb·bs`) by forward substitution
+    /// `y_i = L_ii⁻¹ (x_i − Σ_{j=i−k}^{i−1} L_{i,j} y_j)` and back substitution
+    /// `z_i = L_ii⁻ᵀ (y_i − Σ_{l=i+1}^{i+k} L_{l,i}ᵀ z_l)`.
     pub fn solve_in_place(&self, x: &mut [f64]) {
-        let _ = x;
-        unimplemented!()
+        let (nb, bs, k) = (self.nb, self.bs, self.k);
+        assert_eq!(x.len(), nb * bs, "right-hand side length");
+        let bb = bs * bs;
+        let mut t = [0.0f64; 64];
+        assert!(bs <= 64, "block size above 64 in solve");
+        for i in 0..nb {
+            let (done, rest) = x.split_at_mut(i * bs);
+            let xi = &mut rest[..bs];
+            for j in i.saturating_sub(k)..i {
+                let lij = self.l_block(i, j);
+                let yj = &done[j * bs..(j + 1) * bs];
+                for c in 0..bs {
+                    let y = yj[c];
+                    for r in 0..bs {
+                        xi[r] -= lij[r + c * bs] * y;
+                    }
+                }
+            }
+            let inv = &self.l_diag_inv[i * bb..(i + 1) * bb];
+            for r in 0..bs {
+                t[r] = (0..=r).map(|c| inv[r + c * bs] * xi[c]).sum();
+            }
+            xi.copy_from_slice(&t[..bs]);
+        }
+        for i in (0..nb).rev() {
+            let (head, done) = x.split_at_mut((i + 1) * bs);
+            let xi = &mut head[i * bs..];
+            for l in i + 1..=(i + k).min(nb - 1) {
+                let lli = self.l_block(l, i);
+                let zl = &done[(l - i - 1) * bs..(l - i) * bs];
+                for c in 0..bs {
+                    let col = &lli[c * bs..(c + 1) * bs];
+                    xi[c] -= col.iter().zip(zl).map(|(a, b)| a * b).sum::<f64>();
+                }
+            }
+            let inv = &self.l_diag_inv[i * bb..(i + 1) * bb];
+            // L_ii⁻ᵀ is upper triangular: row r uses columns r.. of L_ii⁻ᵀ = rows r.. of L_ii⁻¹.
+            for r in 0..bs {
+                t[r] = (r..bs).map(|c| inv[c + r * bs] * xi[c]).sum();
+            }
+            xi.copy_from_slice(&t[..bs]);
+        }
     }
 
-    /// SPEC §9 update step 6: the band `|i − j| ≤ out.width()` (`≥ k`) of `P = Λ⁻¹`.
+    /// SPEC §9 update step 6: the band `|i − j| ≤ w = out.width()` (`w ≥ k`) of `P = Λ⁻¹`,
+    /// exact everywhere on it (for `|i − j| > k` it is the Gauss–Markov continuation). From
+    /// `P L = L⁻ᵀ`, with `E_{l,j} = L_{l,j} L_jj⁻¹`, for `j = nb−1, …, 0`:
+    ///
+    /// `P_{j,i} = − Σ_{l=j+1}^{j+k} E_{l,j}ᵀ P_{l,i}`, `i = j+1..=j+w`, then
+    /// `P_jj = L_jj⁻ᵀ L_jj⁻¹ − Σ_{l=j+1}^{j+k} P_{j,l} E_{l,j}` (symmetrised).
+    ///
+    /// Every `P_{l,i}` needed lies in block rows `> j` of the band `w`, already computed; the
+    /// output itself is the sliding window. Cost `≈ 2 w k bs³` per block row.
     pub fn selected_inverse(&mut self, out: &mut SymBand) {
-        let _ = out;
-        unimplemented!()
+        let (nb, bs, k) = (self.nb, self.bs, self.k);
+        let w = out.width();
+        assert_eq!((out.nb(), out.bs()), (nb, bs), "out shape");
+        assert!(w >= k, "selected inversion to a width below the factor's");
+        let bb = bs * bs;
+        let strip = (w + 1) * bb;
+        for j in (0..nb).rev() {
+            let lmax = (j + k).min(nb - 1);
+            let inv = &self.l_diag_inv[j * bb..(j + 1) * bb];
+            for l in j + 1..=lmax {
+                let e = &mut self.e[(l - j - 1) * bb..(l - j) * bb];
+                e.fill(0.0);
+                let o = (j * (k + 1) + l - j) * bb;
+                block_mul_add(bs, e, 1.0, &self.l[o..o + bb], false, inv, false);
+            }
+            let (head, rows_below) = out.data_mut().split_at_mut((j + 1) * strip);
+            let row_j = &mut head[j * strip..];
+            row_j.fill(0.0);
+            let imax = (j + w).min(nb - 1);
+            // Off-diagonal blocks i = j+1..=imax: P_{j,i} = −Σ_l E_{l,j}ᵀ P_{l,i}.
+            for l in j + 1..=lmax {
+                let e = &self.e[(l - j - 1) * bb..(l - j) * bb];
+                let row_l = &rows_below[(l - j - 1) * strip..(l - j) * strip];
+                // i < l: P_{l,i} = P_{i,l}ᵀ, stored in row i (> j) at offset l − i.
+                for i in j + 1..l {
+                    let pil = &rows_below[(i - j - 1) * strip + (l - i) * bb..][..bb];
+                    let out_ji = &mut row_j[(i - j) * bb..(i - j + 1) * bb];
+                    block_mul_add(bs, out_ji, -1.0, e, true, pil, true);
+                }
+                // i = l..=imax: P_{l,i} is row l's strip from offset 0, contiguous.
+                let n = imax + 1 - l;
+                tn_strip_sub(
+                    bs,
+                    &mut row_j[(l - j) * bb..(l - j + n) * bb],
+                    e,
+                    &row_l[..n * bb],
+                );
+            }
+            // Diagonal: L_jj⁻ᵀ L_jj⁻¹ − Σ_l P_{j,l} E_{l,j}.
+            let (diag, offd) = row_j.split_at_mut(bb);
+            block_mul_add(bs, diag, 1.0, inv, true, inv, false);
+            for l in j + 1..=lmax {
+                let e = &self.e[(l - j - 1) * bb..(l - j) * bb];
+                block_mul_add(
+                    bs,
+                    diag,
+                    -1.0,
+                    &offd[(l - j - 1) * bb..(l - j) * bb],
+                    false,
+                    e,
+                    false,
+                );
+            }
+            symmetrise(bs, diag);
+        }
     }
 }

@@ -1,17 +1,17 @@
 //! SPEC §9 update step 3: the precision of the maximum-entropy completion of a band.
 
+use super::kernels::chol_lower;
 use super::{BandError, SymBand};
 
-/// Preallocated buffers for [`completion_precision`]: one dense clique of `(k+1)·bs`.
-#[allow(dead_code)] // stub commit: the fields are used once the bodies land
+/// Preallocated buffers for [`completion_precision`]: one dense clique of `m = (k+1)·bs` and
+/// the rows of its factor's inverse.
 #[derive(Debug, Clone)]
 pub struct CompletionWorkspace {
-    nb: usize,
     bs: usize,
     k: usize,
-    /// Cholesky factor of the current clique, column-major `(k+1)bs × (k+1)bs`.
+    /// The clique `P_{C_j C_j}`, then its Cholesky factor, column-major `m × m`.
     chol: Vec<f64>,
-    /// Rows of the clique factor's inverse, `(k+1)bs × (k+1)bs`.
+    /// Rows `r0..m` of the factor's inverse, row `q` at `q·m` (length `m`).
     rows: Vec<f64>,
 }
 
@@ -21,7 +21,6 @@ impl CompletionWorkspace {
         let k = k.min(nb.saturating_sub(1));
         let m = (k + 1) * bs;
         Self {
-            nb,
             bs,
             k,
             chol: vec![0.0; m * m],
@@ -32,15 +31,91 @@ impl CompletionWorkspace {
 
 /// SPEC §9 update step 3: the precision `Λ` of the maximum-entropy completion of the band
 /// `|i − j| ≤ k` of `p` (`p.width() ≥ k`, `k` clamped to `nb − 1`):
-/// `Λ = Σ_j pad(P_{C_j C_j}⁻¹) − Σ_j pad(P_{S_j S_j}⁻¹)` with cliques `C_j = {j, …, j+k}`,
-/// `j = 0..nb−k`, and separators `S_j = {j+1, …, j+k}`. `out` has width `k`.
-/// `k = 0`: `Λ_ii = P_ii⁻¹`; `k = nb − 1`: `Λ = P⁻¹` (one clique).
+///
+/// `Λ = Σ_j pad(P_{C_j C_j}⁻¹) − Σ_j pad(P_{S_j S_j}⁻¹)`
+///
+/// with cliques `C_j = {j, …, j+k}`, `j = 0..nb−k`, and separators `S_j = C_j ∩ C_{j+1}`.
+/// `out` (width `k`) is overwritten. `k = 0`: `Λ_ii = P_ii⁻¹`; `k = nb − 1`: `Λ = P⁻¹`.
+///
+/// Computed without the cancelling difference: with the Cholesky factor
+/// `P_{C_j C_j} = L Lᵀ`, the separator `S_{j−1}` is the leading `k` blocks of `C_j`, so its
+/// factor is the leading part of `L`, and `P_{C_j}⁻¹ − pad(P_{S_{j−1}}⁻¹) = Xᵀ X` with `X`
+/// the last block row of `L⁻¹` (the conditional regression of block `j+k` on the others).
+/// The first clique contributes `P_{C_0}⁻¹ = L⁻ᵀ L⁻¹` whole. Cost per block row
+/// `≈ ((k+1) bs)³/3`.
+///
+/// Fails with [`BandError::CliqueNotPositiveDefinite`] on the first clique whose block is
+/// not numerically positive definite (separators are leading blocks of cliques).
 pub fn completion_precision(
     p: &SymBand,
     k: usize,
     out: &mut SymBand,
     ws: &mut CompletionWorkspace,
 ) -> Result<(), BandError> {
-    let _ = (p, k, out, ws);
-    unimplemented!()
+    let (nb, bs) = (p.nb(), p.bs());
+    let k = k.min(nb.saturating_sub(1));
+    assert!(p.width() >= k, "the band of P is narrower than k");
+    assert_eq!((out.nb(), out.bs(), out.width()), (nb, bs, k), "out shape");
+    assert_eq!((ws.bs, ws.k), (bs, k), "workspace shape");
+    out.fill_zero();
+    if nb == 0 {
+        return Ok(());
+    }
+    let m = (k + 1) * bs;
+    for j in 0..nb - k {
+        // Gather the lower triangle of the dense clique (block (a, c), a ≥ c, is P_{j+c,j+a}ᵀ).
+        let a = &mut ws.chol;
+        for cb in 0..=k {
+            for ab in cb..=k {
+                let blk = p.block(j + cb, ab - cb);
+                for c in 0..bs {
+                    for r in 0..bs {
+                        a[(ab * bs + r) + (cb * bs + c) * m] = blk[c + r * bs];
+                    }
+                }
+            }
+        }
+        if !chol_lower(m, a) {
+            return Err(BandError::CliqueNotPositiveDefinite {
+                first: j,
+                last: j + k,
+            });
+        }
+        // Rows r0..m of L⁻¹: row r solves Lᵀ x = e_r, so x_i = 0 for i > r.
+        let r0 = if j == 0 { 0 } else { k * bs };
+        let l = &ws.chol;
+        for r in r0..m {
+            let x = &mut ws.rows[(r - r0) * m..(r - r0 + 1) * m];
+            x[r + 1..].fill(0.0);
+            x[r] = 1.0 / l[r + r * m];
+            for i in (0..r).rev() {
+                let col = &l[i * m..(i + 1) * m];
+                let mut acc = 0.0;
+                for t in i + 1..=r {
+                    acc += col[t] * x[t];
+                }
+                x[i] = -acc / col[i];
+            }
+        }
+        // Λ_{C_j} += Xᵀ X on the upper blocks; X's row q has zeros past column r0 + q.
+        let nrows = m - r0;
+        let rows = &ws.rows[..nrows * m];
+        for cb in 0..=k {
+            for ab in 0..=cb {
+                let blk = out.block_mut(j + ab, cb - ab);
+                for c in 0..bs {
+                    let col = cb * bs + c;
+                    for r in 0..bs {
+                        let row = ab * bs + r;
+                        let mut acc = 0.0;
+                        for x in rows.chunks_exact(m) {
+                            acc += x[row] * x[col];
+                        }
+                        blk[r + c * bs] += acc;
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
 }

@@ -1,1 +1,271 @@
 //! Small dense kernels on column-major slices for the block-band operations.
+//!
+//! A "strip" is a column-major `bs × n` matrix with leading dimension `bs`, i.e. `n`
+//! consecutive columns of `bs` entries; a block row of a [`super::SymBand`] or
+//! [`super::GenBand`] is one. The kernels take the block size at run time and are
+//! specialised for `bs = 1..=4` (a `match` calls an `#[inline(always)]` body with a constant,
+//! so the inner loops unroll and the accumulators live in registers).
+
+/// Calls `$body` (an `#[inline(always)]` fn whose first argument is the block size) with a
+/// constant block size for `bs = 1..=4`, so each gets its own unrolled copy.
+macro_rules! specialise {
+    ($bs:expr, $body:ident($($arg:expr),*)) => {
+        match $bs {
+            1 => $body(1, $($arg),*),
+            2 => $body(2, $($arg),*),
+            3 => $body(3, $($arg),*),
+            4 => $body(4, $($arg),*),
+            bs => $body(bs, $($arg),*),
+        }
+    };
+}
+
+/// Largest block size with register accumulators.
+const MAX_FIXED: usize = 4;
+
+/// `C += sign · X Yᵀ` for strips `X`, `Y` of `bs × n` (`x.len() == y.len()`) and a
+/// `bs × bs` block `C`: `C = Σ_c X[:, c] Y[:, c]ᵀ`, the product of two block rows.
+#[inline]
+pub fn nt_acc(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+    specialise!(bs, nt_acc_body(c, x, y, sign))
+}
+
+#[inline(always)]
+fn nt_acc_body(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+    debug_assert_eq!(x.len(), y.len());
+    debug_assert_eq!(c.len(), bs * bs);
+    if bs > MAX_FIXED {
+        for (xc, yc) in x.chunks_exact(bs).zip(y.chunks_exact(bs)) {
+            for s in 0..bs {
+                let ys = sign * yc[s];
+                for r in 0..bs {
+                    c[r + s * bs] += xc[r] * ys;
+                }
+            }
+        }
+        return;
+    }
+    // Two sets of accumulators (even and odd columns) break the dependency chains.
+    let mut acc0 = [0.0f64; MAX_FIXED * MAX_FIXED];
+    let mut acc1 = [0.0f64; MAX_FIXED * MAX_FIXED];
+    let mut xs = x.chunks_exact(2 * bs);
+    let mut ys = y.chunks_exact(2 * bs);
+    for (xc, yc) in (&mut xs).zip(&mut ys) {
+        for s in 0..bs {
+            for r in 0..bs {
+                acc0[r + s * bs] += xc[r] * yc[s];
+                acc1[r + s * bs] += xc[bs + r] * yc[bs + s];
+            }
+        }
+    }
+    let (xr, yr) = (xs.remainder(), ys.remainder());
+    if !xr.is_empty() {
+        for s in 0..bs {
+            for r in 0..bs {
+                acc0[r + s * bs] += xr[r] * yr[s];
+            }
+        }
+    }
+    for e in 0..bs * bs {
+        c[e] += sign * (acc0[e] + acc1[e]);
+    }
+}
+
+/// `out −= Mᵀ S` for a `bs × bs` block `M` and strips `S`, `out` of `bs × n`
+/// (`out.len() == s.len()`).
+#[inline]
+pub fn tn_strip_sub(bs: usize, out: &mut [f64], m: &[f64], s: &[f64]) {
+    specialise!(bs, tn_strip_sub_body(out, m, s))
+}
+
+#[inline(always)]
+fn tn_strip_sub_body(bs: usize, out: &mut [f64], m: &[f64], s: &[f64]) {
+    debug_assert_eq!(out.len(), s.len());
+    for (oc, sc) in out.chunks_exact_mut(bs).zip(s.chunks_exact(bs)) {
+        for r in 0..bs {
+            let mcol = &m[r * bs..(r + 1) * bs];
+            let mut acc = 0.0;
+            for t in 0..bs {
+                acc += mcol[t] * sc[t];
+            }
+            oc[r] -= acc;
+        }
+    }
+}
+
+/// `C += alpha · op(A) op(B)` for `bs × bs` blocks, `op(X) = Xᵀ` when the flag is set.
+#[inline]
+pub fn block_mul_add(
+    bs: usize,
+    c: &mut [f64],
+    alpha: f64,
+    a: &[f64],
+    ta: bool,
+    b: &[f64],
+    tb: bool,
+) {
+    specialise!(bs, block_mul_add_body(c, alpha, a, ta, b, tb))
+}
+
+#[inline(always)]
+fn block_mul_add_body(
+    bs: usize,
+    c: &mut [f64],
+    alpha: f64,
+    a: &[f64],
+    ta: bool,
+    b: &[f64],
+    tb: bool,
+) {
+    for j in 0..bs {
+        for i in 0..bs {
+            let mut acc = 0.0;
+            for t in 0..bs {
+                let aij = if ta { a[t + i * bs] } else { a[i + t * bs] };
+                let btj = if tb { b[j + t * bs] } else { b[t + j * bs] };
+                acc += aij * btj;
+            }
+            c[i + j * bs] += alpha * acc;
+        }
+    }
+}
+
+/// In-place lower Cholesky factor `A = L Lᵀ` of a column-major `m × m` symmetric matrix whose
+/// lower triangle is read; on return the lower triangle holds `L` and the strict upper
+/// triangle is zero. Returns `false` when a pivot is not positive (or not finite): the matrix
+/// is not numerically positive definite.
+pub fn chol_lower(m: usize, a: &mut [f64]) -> bool {
+    debug_assert_eq!(a.len(), m * m);
+    for j in 0..m {
+        // Left-looking: a[j.., j] −= L[j.., 0..j] L[j, 0..j]ᵀ.
+        for p in 0..j {
+            let ljp = a[j + p * m];
+            if ljp != 0.0 {
+                let (colp, colj) = split_cols(a, m, p, j);
+                for i in j..m {
+                    colj[i] -= colp[i] * ljp;
+                }
+            }
+        }
+        let d = a[j + j * m];
+        if d.is_nan() || d <= 0.0 || d.is_infinite() {
+            return false;
+        }
+        let l = d.sqrt();
+        let inv = 1.0 / l;
+        a[j + j * m] = l;
+        for i in j + 1..m {
+            a[i + j * m] *= inv;
+        }
+        for i in 0..j {
+            a[i + j * m] = 0.0;
+        }
+    }
+    true
+}
+
+/// Columns `p < j` of a column-major `m`-row matrix, the first shared, the second mutable.
+#[inline]
+fn split_cols(a: &mut [f64], m: usize, p: usize, j: usize) -> (&[f64], &mut [f64]) {
+    let (head, tail) = a.split_at_mut(j * m);
+    (&head[p * m..(p + 1) * m], &mut tail[..m])
+}
+
+/// `Linv = L⁻¹` for a column-major lower triangular `m × m` `L` with positive diagonal
+/// (forward substitution column by column; the strict upper triangle of `Linv` is zero).
+pub fn tri_lower_inv(m: usize, l: &[f64], linv: &mut [f64]) {
+    linv.fill(0.0);
+    for c in 0..m {
+        // Solve L x = e_c; x[i] = 0 for i < c.
+        let col = &mut linv[c * m..(c + 1) * m];
+        col[c] = 1.0 / l[c + c * m];
+        for i in c + 1..m {
+            let mut acc = 0.0;
+            for t in c..i {
+                acc += l[i + t * m] * col[t];
+            }
+            col[i] = -acc / l[i + i * m];
+        }
+    }
+}
+
+/// `C = (C + Cᵀ)/2` for a column-major `m × m` block.
+pub fn symmetrise(m: usize, c: &mut [f64]) {
+    for j in 0..m {
+        for i in j + 1..m {
+            let v = 0.5 * (c[i + j * m] + c[j + i * m]);
+            c[i + j * m] = v;
+            c[j + i * m] = v;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DMatrix;
+
+    fn mat(bs: usize, seed: u64) -> DMatrix<f64> {
+        DMatrix::from_fn(bs, bs, |r, c| {
+            ((seed as f64 + 1.3 * r as f64 + 0.7 * c as f64).sin() * 10.0).fract()
+        })
+    }
+
+    #[test]
+    fn nt_acc_matches_dense_for_every_block_size() {
+        for bs in 1..=6 {
+            for ncols in [1, 2, 3, 7] {
+                let x = DMatrix::from_fn(bs, ncols * bs, |r, c| (r as f64 - 0.3 * c as f64).sin());
+                let y = DMatrix::from_fn(bs, ncols * bs, |r, c| (0.5 * r as f64 + c as f64).cos());
+                let c0 = mat(bs, 3);
+                let mut c = c0.clone();
+                nt_acc(bs, c.as_mut_slice(), x.as_slice(), y.as_slice(), -1.0);
+                let expect = &c0 - &x * y.transpose();
+                assert!((c - expect).amax() < 1e-13, "bs {bs}");
+            }
+        }
+    }
+
+    #[test]
+    fn tn_strip_sub_and_block_mul_add_match_dense() {
+        for bs in 1..=6 {
+            let m = mat(bs, 1);
+            let s = DMatrix::from_fn(bs, 3 * bs, |r, c| (r as f64 * 0.2 + c as f64).sin());
+            let o0 = DMatrix::from_fn(bs, 3 * bs, |r, c| (r as f64 - c as f64).cos());
+            let mut o = o0.clone();
+            tn_strip_sub(bs, o.as_mut_slice(), m.as_slice(), s.as_slice());
+            assert!((o - (&o0 - m.transpose() * &s)).amax() < 1e-13);
+            let (a, b, c0) = (mat(bs, 4), mat(bs, 5), mat(bs, 6));
+            for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
+                let mut c = c0.clone();
+                block_mul_add(
+                    bs,
+                    c.as_mut_slice(),
+                    -2.0,
+                    a.as_slice(),
+                    ta,
+                    b.as_slice(),
+                    tb,
+                );
+                let oa = if ta { a.transpose() } else { a.clone() };
+                let ob = if tb { b.transpose() } else { b.clone() };
+                assert!((c - (&c0 - 2.0 * oa * ob)).amax() < 1e-13);
+            }
+        }
+    }
+
+    #[test]
+    fn cholesky_and_triangular_inverse_match_dense() {
+        let m = 5;
+        let g = DMatrix::from_fn(m, m, |r, c| ((r * 7 + c * 3) as f64).sin());
+        let a = &g * g.transpose() + DMatrix::identity(m, m);
+        let mut l = a.clone();
+        assert!(chol_lower(m, l.as_mut_slice()));
+        assert!((&l * l.transpose() - &a).amax() < 1e-12);
+        let mut linv = DMatrix::zeros(m, m);
+        tri_lower_inv(m, l.as_slice(), linv.as_mut_slice());
+        assert!((&linv * &l - DMatrix::identity(m, m)).amax() < 1e-12);
+        let mut bad = -a;
+        assert!(!chol_lower(m, bad.as_mut_slice()));
+    }
+}

@@ -118,6 +118,12 @@ impl SymBand {
         self.data.fill(0.0);
     }
 
+    /// All block rows, one strip after the other (see [`SymBand::row_strip`]).
+    #[inline]
+    pub(crate) fn data_mut(&mut self) -> &mut [f64] {
+        &mut self.data
+    }
+
     /// Copies the blocks with `d ≤ min(self.width, src.width)`; the others become zero.
     pub fn copy_band_from(&mut self, src: &SymBand) {
         assert_eq!((self.nb, self.bs), (src.nb, src.bs), "shape mismatch");
