@@ -71,6 +71,99 @@ fn nt_acc_body(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
     }
 }
 
+/// Whether the AVX2 + FMA kernels of [`nt_acc_fast`] can run on this CPU (checked once per
+/// operation by the caller; `std` caches the detection).
+#[inline]
+pub fn simd_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// [`nt_acc`] for long strips: with `simd` (from [`simd_available`]) and `bs = 2` it runs an
+/// AVX2/FMA kernel, otherwise the portable one.
+#[inline]
+pub fn nt_acc_fast(simd: bool, bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+    #[cfg(target_arch = "x86_64")]
+    if simd && bs == 2 {
+        assert!(x.len() == y.len() && x.len() % 2 == 0 && c.len() == 4);
+        // SAFETY: `simd` certifies AVX2 and FMA (see `simd_available`); lengths checked above.
+        unsafe { avx2::nt_acc_2(c, x, y, sign) };
+        return;
+    }
+    let _ = simd;
+    nt_acc(bs, c, x, y, sign)
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    /// `C += sign · X Yᵀ` for `2 × n` strips and a `2 × 2` block. Two columns per 256-bit
+    /// vector `v = [v₀(c), v₁(c), v₀(c+1), v₁(c+1)]`: `X · dup_even(Y)` accumulates
+    /// `(C₀₀, C₁₀)` and `X · dup_odd(Y)` accumulates `(C₀₁, C₁₁)`, each twice over (lanes
+    /// 0–1 and 2–3), in four independent chains to hide the FMA latency.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `x.len() == y.len()` is even and `c.len() == 4`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn nt_acc_2(c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+        let n = x.len();
+        let (xp, yp) = (x.as_ptr(), y.as_ptr());
+        let mut ev = [_mm256_setzero_pd(); 4];
+        let mut od = [_mm256_setzero_pd(); 4];
+        let mut i = 0;
+        // SAFETY (all loads): every index read is below `n` by the loop conditions.
+        unsafe {
+            while i + 16 <= n {
+                for u in 0..4 {
+                    let xv = _mm256_loadu_pd(xp.add(i + 4 * u));
+                    let yv = _mm256_loadu_pd(yp.add(i + 4 * u));
+                    ev[u] = _mm256_fmadd_pd(xv, _mm256_movedup_pd(yv), ev[u]);
+                    od[u] = _mm256_fmadd_pd(xv, _mm256_permute_pd::<0b1111>(yv), od[u]);
+                }
+                i += 16;
+            }
+            let mut u = 0;
+            while i + 4 <= n {
+                let xv = _mm256_loadu_pd(xp.add(i));
+                let yv = _mm256_loadu_pd(yp.add(i));
+                ev[u] = _mm256_fmadd_pd(xv, _mm256_movedup_pd(yv), ev[u]);
+                od[u] = _mm256_fmadd_pd(xv, _mm256_permute_pd::<0b1111>(yv), od[u]);
+                i += 4;
+                u += 1;
+            }
+        }
+        let e = _mm256_add_pd(_mm256_add_pd(ev[0], ev[1]), _mm256_add_pd(ev[2], ev[3]));
+        let o = _mm256_add_pd(_mm256_add_pd(od[0], od[1]), _mm256_add_pd(od[2], od[3]));
+        let mut lo = [0.0f64; 2];
+        let mut hi = [0.0f64; 2];
+        // SAFETY: stores into local arrays of two f64.
+        unsafe {
+            let e2 = _mm_add_pd(_mm256_castpd256_pd128(e), _mm256_extractf128_pd::<1>(e));
+            let o2 = _mm_add_pd(_mm256_castpd256_pd128(o), _mm256_extractf128_pd::<1>(o));
+            _mm_storeu_pd(lo.as_mut_ptr(), e2);
+            _mm_storeu_pd(hi.as_mut_ptr(), o2);
+        }
+        if i < n {
+            // One column left.
+            lo[0] += x[i] * y[i];
+            lo[1] += x[i + 1] * y[i];
+            hi[0] += x[i] * y[i + 1];
+            hi[1] += x[i + 1] * y[i + 1];
+        }
+        c[0] += sign * lo[0];
+        c[1] += sign * lo[1];
+        c[2] += sign * hi[0];
+        c[3] += sign * hi[1];
+    }
+}
+
 /// `out −= Mᵀ S` for a `bs × bs` block `M` and strips `S`, `out` of `bs × n`
 /// (`out.len() == s.len()`).
 #[inline]
@@ -222,6 +315,22 @@ mod tests {
                 nt_acc(bs, c.as_mut_slice(), x.as_slice(), y.as_slice(), -1.0);
                 let expect = &c0 - &x * y.transpose();
                 assert!((c - expect).amax() < 1e-13, "bs {bs}");
+            }
+        }
+    }
+
+    #[test]
+    fn nt_acc_fast_matches_dense_for_every_length() {
+        let simd = simd_available();
+        for bs in 1..=3 {
+            for ncols in 0..=21 {
+                let x = DMatrix::from_fn(bs, ncols, |r, c| (r as f64 - 0.3 * c as f64).sin());
+                let y = DMatrix::from_fn(bs, ncols, |r, c| (0.5 * r as f64 + c as f64).cos());
+                let c0 = mat(bs, 3);
+                let mut c = c0.clone();
+                nt_acc_fast(simd, bs, c.as_mut_slice(), x.as_slice(), y.as_slice(), -1.0);
+                let expect = &c0 - &x * y.transpose();
+                assert!((c - expect).amax() < 1e-13, "bs {bs}, {ncols} columns");
             }
         }
     }

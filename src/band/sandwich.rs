@@ -1,6 +1,6 @@
 //! SPEC §9 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
-use super::kernels::{nt_acc, symmetrise};
+use super::kernels::{nt_acc_fast, simd_available, symmetrise};
 use super::{GenBand, SymBand};
 
 /// Preallocated buffers for [`sandwich`]: a ring of full block rows of `P` and one block
@@ -64,6 +64,7 @@ pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWo
     );
     let bb = bs * bs;
     let row_len = (2 * wp + 1) * bb;
+    let simd = simd_available();
     let mut next_row = 0; // first row of P not yet in the ring
     for i in 0..nb {
         let m_lo = i.saturating_sub(b);
@@ -88,7 +89,7 @@ pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWo
             let p_row = &ws.rows[slot * row_len..(slot + 1) * row_len];
             let p_cols = &p_row[(l_lo + wp - m) * bb..][..ncols];
             let w_im = &mut ws.w_row[(m + b - i) * bb..(m + b - i + 1) * bb];
-            nt_acc(bs, w_im, a_row, p_cols, 1.0);
+            nt_acc_fast(simd, bs, w_im, a_row, p_cols, 1.0);
         }
         // out_{i,j} = W_{i,·} (A_{j,·})ᵀ over m = j−b..=j+b.
         let out_row = out.row_strip_mut(i);
@@ -99,7 +100,7 @@ pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWo
             let a_cols = &a.row_strip(j)[(lo + b - j) * bb..][..n];
             let o = &mut out_row[(j - i) * bb..(j - i + 1) * bb];
             o.fill(0.0);
-            nt_acc(bs, o, w_cols, a_cols, 1.0);
+            nt_acc_fast(simd, bs, o, w_cols, a_cols, 1.0);
         }
         symmetrise(bs, &mut out_row[..bb]);
     }
