@@ -83,6 +83,15 @@ fn band_of(a: &DMatrix<f64>, bs: usize, w: usize) -> DMatrix<f64> {
     })
 }
 
+/// Every block of `s` set to NaN, standing for stale content an operation must overwrite.
+fn poison(s: &mut SymBand) {
+    for i in 0..s.nb() {
+        for d in 0..=s.width().min(s.nb() - 1 - i) {
+            s.block_mut(i, d).fill(f64::NAN);
+        }
+    }
+}
+
 /// Storage slots past the last block column are zero: rebuilding from the dense form gives
 /// the identical struct.
 fn assert_clean(s: &SymBand) {
@@ -131,6 +140,7 @@ fn completion_precision_inverse_matches_band_and_is_banded() {
         // P given wider than k: only its band k may enter.
         let p = SymBand::from_dense(&s, bs, (k + 1).min(nb - 1));
         let mut lambda = SymBand::zeros(nb, bs, k);
+        poison(&mut lambda);
         let mut ws = CompletionWorkspace::new(nb, bs, k);
         completion_precision(&p, k, &mut lambda, &mut ws).unwrap();
         assert_eq!(lambda.width(), k);
@@ -268,8 +278,7 @@ fn selected_inverse_matches_dense_inverse_on_every_width() {
         for w in k..nb {
             chol.reserve_width(w);
             let mut out = SymBand::zeros(nb, bs, w);
-            // Stale content must not leak into the result.
-            out.block_mut(0, 0).fill(f64::NAN);
+            poison(&mut out);
             chol.selected_inverse(&mut out);
             assert_clean(&out);
             let err = band_rel_err(&out.to_dense(), &inv, bs, w);
@@ -334,7 +343,7 @@ fn sandwich_matches_dense_product_band() {
         for width in [wp, nb - 1] {
             let p = SymBand::from_dense(&s, bs, width);
             let mut out = SymBand::zeros(nb, bs, k);
-            out.block_mut(0, 0).fill(f64::NAN);
+            poison(&mut out);
             sandwich(&a, &p, &mut out, &mut ws);
             assert_clean(&out);
             let got = out.to_dense();

@@ -1,6 +1,8 @@
 //! SPEC §9 update steps 4–6: block-banded Cholesky, solves and selected inversion.
 
-use super::kernels::{block_mul_add, chol_lower, nt_acc, symmetrise, tn_strip_sub, tri_lower_inv};
+use super::kernels::{
+    block_mul_add, chol_lower, nt_acc, simd_available, symmetrise, tn_multi_neg, tri_lower_inv,
+};
 use super::{BandError, SymBand};
 
 /// Block-banded Cholesky factor `Λ = L Lᵀ` (`L` lower block-banded with bandwidth `k`) of a
@@ -16,8 +18,8 @@ pub struct BandCholesky {
     l: Vec<f64>,
     /// `L_jj⁻¹` at `j bs²` (lower triangular).
     l_diag_inv: Vec<f64>,
-    /// Selected inversion scratch: `E_{j+d, j} = L_{j+d, j} L_jj⁻¹`, `d = 1..=k`, at
-    /// `(d−1) bs²`.
+    /// Selected inversion scratch: `E_{j+d, j}ᵀ` with `E_{j+d, j} = L_{j+d, j} L_jj⁻¹`,
+    /// `d = 1..=k`, at `(d−1) bs²`.
     e: Vec<f64>,
     /// Two scratch blocks.
     tmp: Vec<f64>,
@@ -183,54 +185,62 @@ impl BandCholesky {
         let w = out.width();
         assert_eq!((out.nb(), out.bs()), (nb, bs), "out shape");
         assert!(w >= k, "selected inversion to a width below the factor's");
+        let simd = simd_available();
         let bb = bs * bs;
         let strip = (w + 1) * bb;
         for j in (0..nb).rev() {
             let lmax = (j + k).min(nb - 1);
+            let nl = lmax - j;
             let inv = &self.l_diag_inv[j * bb..(j + 1) * bb];
-            for l in j + 1..=lmax {
-                let e = &mut self.e[(l - j - 1) * bb..(l - j) * bb];
-                e.fill(0.0);
-                let o = (j * (k + 1) + l - j) * bb;
-                block_mul_add(bs, e, 1.0, &self.l[o..o + bb], false, inv, false);
+            // Eᵀ_{l,j} = L_jj⁻ᵀ L_{l,j}ᵀ for l = j+1..=lmax.
+            let et = &mut self.e[..nl * bb];
+            for (d, etl) in et.chunks_exact_mut(bb).enumerate() {
+                etl.fill(0.0);
+                let o = (j * (k + 1) + d + 1) * bb;
+                block_mul_add(bs, etl, 1.0, inv, true, &self.l[o..o + bb], true);
             }
+            let et = &self.e[..nl * bb];
             let (head, rows_below) = out.data_mut().split_at_mut((j + 1) * strip);
             let row_j = &mut head[j * strip..];
-            row_j.fill(0.0);
             let imax = (j + w).min(nb - 1);
-            // Off-diagonal blocks i = j+1..=imax: P_{j,i} = −Σ_l E_{l,j}ᵀ P_{l,i}.
-            for l in j + 1..=lmax {
-                let e = &self.e[(l - j - 1) * bb..(l - j) * bb];
-                let row_l = &rows_below[(l - j - 1) * strip..(l - j) * strip];
-                // i < l: P_{l,i} = P_{i,l}ᵀ, stored in row i (> j) at offset l − i.
-                for i in j + 1..l {
-                    let pil = &rows_below[(i - j - 1) * strip + (l - i) * bb..][..bb];
-                    let out_ji = &mut row_j[(i - j) * bb..(i - j + 1) * bb];
-                    block_mul_add(bs, out_ji, -1.0, e, true, pil, true);
-                }
-                // i = l..=imax: P_{l,i} is row l's strip from offset 0, contiguous.
-                let n = imax + 1 - l;
-                tn_strip_sub(
+            // Blocks i = lmax..=imax: every P_{l,i} (l ≤ lmax ≤ i) is in row l's strip, at
+            // block offset i − l, so the sources are equally spaced: row l = j+1+q starts
+            // its part at q (strip − bs²) + (lmax − j − 1) bs² of `rows_below`.
+            if nl > 0 {
+                tn_multi_neg(
+                    simd,
                     bs,
-                    &mut row_j[(l - j) * bb..(l - j + n) * bb],
-                    e,
-                    &row_l[..n * bb],
+                    &mut row_j[nl * bb..(imax + 1 - j) * bb],
+                    et,
+                    &rows_below[(nl - 1) * bb..],
+                    strip - bb,
                 );
+                row_j[..nl * bb].fill(0.0);
+            } else {
+                // k = 0 or the last block row: P_{j,i} = 0 for i > j.
+                row_j[..(imax + 1 - j) * bb].fill(0.0);
+            }
+            row_j[(imax + 1 - j) * bb..].fill(0.0);
+            // Blocks i = j+1..lmax−1 (k > 1 only): P_{l,i} = P_{i,l}ᵀ for l > i.
+            for i in j + 1..lmax {
+                let out_ji = &mut row_j[(i - j) * bb..(i - j + 1) * bb];
+                for (q, etl) in et.chunks_exact(bb).enumerate() {
+                    let l = j + 1 + q;
+                    if l <= i {
+                        let pli = &rows_below[(l - j - 1) * strip + (i - l) * bb..][..bb];
+                        block_mul_add(bs, out_ji, -1.0, etl, false, pli, false);
+                    } else {
+                        let pil = &rows_below[(i - j - 1) * strip + (l - i) * bb..][..bb];
+                        block_mul_add(bs, out_ji, -1.0, etl, false, pil, true);
+                    }
+                }
             }
             // Diagonal: L_jj⁻ᵀ L_jj⁻¹ − Σ_l P_{j,l} E_{l,j}.
             let (diag, offd) = row_j.split_at_mut(bb);
             block_mul_add(bs, diag, 1.0, inv, true, inv, false);
-            for l in j + 1..=lmax {
-                let e = &self.e[(l - j - 1) * bb..(l - j) * bb];
-                block_mul_add(
-                    bs,
-                    diag,
-                    -1.0,
-                    &offd[(l - j - 1) * bb..(l - j) * bb],
-                    false,
-                    e,
-                    false,
-                );
+            for (q, etl) in et.chunks_exact(bb).enumerate() {
+                let pjl = &offd[q * bb..(q + 1) * bb];
+                block_mul_add(bs, diag, -1.0, pjl, false, etl, true);
             }
             symmetrise(bs, diag);
         }

@@ -100,6 +100,54 @@ pub fn nt_acc_fast(simd: bool, bs: usize, c: &mut [f64], x: &[f64], y: &[f64], s
     nt_acc(bs, c, x, y, sign)
 }
 
+/// `out[:, c] = −Σ_{q<nq} M_qᵀ S_q[:, c]` for `bs × bs` blocks `M_q = mt[q bs²..]` given
+/// transposed (`mt` holds `M_qᵀ`, column-major) and strips `S_q = base[q·stride..]` of the
+/// same length as `out`; `nq = mt.len() / bs²`. With `simd` and `bs = 2` an AVX2/FMA kernel.
+#[inline]
+pub fn tn_multi_neg(
+    simd: bool,
+    bs: usize,
+    out: &mut [f64],
+    mt: &[f64],
+    base: &[f64],
+    stride: usize,
+) {
+    let nq = mt.len() / (bs * bs);
+    if nq == 0 {
+        out.fill(0.0);
+        return;
+    }
+    assert!(
+        base.len() >= (nq - 1) * stride + out.len(),
+        "strips out of range"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if simd && bs == 2 {
+        // SAFETY: `simd` certifies AVX2 and FMA; the strip range is checked above.
+        unsafe { avx2::tn_multi_neg_2(out, mt, base, stride) };
+        return;
+    }
+    let _ = simd;
+    specialise!(bs, tn_multi_neg_body(out, mt, base, stride))
+}
+
+#[inline(always)]
+fn tn_multi_neg_body(bs: usize, out: &mut [f64], mt: &[f64], base: &[f64], stride: usize) {
+    let bb = bs * bs;
+    out.fill(0.0);
+    for (q, m) in mt.chunks_exact(bb).enumerate() {
+        let s = &base[q * stride..q * stride + out.len()];
+        for (oc, sc) in out.chunks_exact_mut(bs).zip(s.chunks_exact(bs)) {
+            for t in 0..bs {
+                let st = sc[t];
+                for r in 0..bs {
+                    oc[r] -= m[r + t * bs] * st;
+                }
+            }
+        }
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
@@ -162,26 +210,45 @@ mod avx2 {
         c[2] += sign * hi[0];
         c[3] += sign * hi[1];
     }
-}
 
-/// `out −= Mᵀ S` for a `bs × bs` block `M` and strips `S`, `out` of `bs × n`
-/// (`out.len() == s.len()`).
-#[inline]
-pub fn tn_strip_sub(bs: usize, out: &mut [f64], m: &[f64], s: &[f64]) {
-    specialise!(bs, tn_strip_sub_body(out, m, s))
-}
-
-#[inline(always)]
-fn tn_strip_sub_body(bs: usize, out: &mut [f64], m: &[f64], s: &[f64]) {
-    debug_assert_eq!(out.len(), s.len());
-    for (oc, sc) in out.chunks_exact_mut(bs).zip(s.chunks_exact(bs)) {
-        for r in 0..bs {
-            let mcol = &m[r * bs..(r + 1) * bs];
-            let mut acc = 0.0;
-            for t in 0..bs {
-                acc += mcol[t] * sc[t];
+    /// [`super::tn_multi_neg`] for `bs = 2`: per pair of columns
+    /// `v = [s₀(c), s₁(c), s₀(c+1), s₁(c+1)]`,
+    /// `out −= [m₀₀ m₁₀ m₀₀ m₁₀]·dup_even(v) + [m₀₁ m₁₁ m₀₁ m₁₁]·dup_odd(v)` (with `m = Mᵀ`).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `mt.len()` is a positive multiple of 4, `out.len()`
+    /// is even and `base.len() ≥ (mt.len()/4 − 1)·stride + out.len()`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn tn_multi_neg_2(out: &mut [f64], mt: &[f64], base: &[f64], stride: usize) {
+        let (n, nq) = (out.len(), mt.len() / 4);
+        let (op, bp, mp) = (out.as_mut_ptr(), base.as_ptr(), mt.as_ptr());
+        let mut c = 0;
+        // SAFETY (all accesses): indices are below the lengths stated in the contract.
+        unsafe {
+            while c + 4 <= n {
+                let mut acc = _mm256_setzero_pd();
+                for q in 0..nq {
+                    let v = _mm256_loadu_pd(bp.add(q * stride + c));
+                    let m0 = _mm_loadu_pd(mp.add(4 * q));
+                    let m1 = _mm_loadu_pd(mp.add(4 * q + 2));
+                    let (m0, m1) = (_mm256_set_m128d(m0, m0), _mm256_set_m128d(m1, m1));
+                    acc = _mm256_fmadd_pd(m0, _mm256_movedup_pd(v), acc);
+                    acc = _mm256_fmadd_pd(m1, _mm256_permute_pd::<0b1111>(v), acc);
+                }
+                _mm256_storeu_pd(op.add(c), _mm256_sub_pd(_mm256_setzero_pd(), acc));
+                c += 4;
             }
-            oc[r] -= acc;
+            if c < n {
+                let (mut o0, mut o1) = (0.0, 0.0);
+                for q in 0..nq {
+                    let (s0, s1) = (*bp.add(q * stride + c), *bp.add(q * stride + c + 1));
+                    let m = mp.add(4 * q);
+                    o0 += *m * s0 + *m.add(2) * s1;
+                    o1 += *m.add(1) * s0 + *m.add(3) * s1;
+                }
+                *op.add(c) = -o0;
+                *op.add(c + 1) = -o1;
+            }
         }
     }
 }
@@ -336,14 +403,44 @@ mod tests {
     }
 
     #[test]
-    fn tn_strip_sub_and_block_mul_add_match_dense() {
+    fn tn_multi_neg_matches_dense() {
+        let simd = simd_available();
+        for bs in 1..=5 {
+            for nq in 0..=3 {
+                for ncols in [1, 2, 3, 8, 13] {
+                    let stride = ncols * bs + 3;
+                    let base: Vec<f64> = (0..nq * stride + ncols * bs)
+                        .map(|e| (0.37 * e as f64).sin())
+                        .collect();
+                    let ms: Vec<DMatrix<f64>> = (0..nq).map(|q| mat(bs, 10 + q as u64)).collect();
+                    let mt: Vec<f64> = ms
+                        .iter()
+                        .flat_map(|m| m.transpose().as_slice().to_vec())
+                        .collect();
+                    let mut expect = DMatrix::zeros(bs, ncols);
+                    for (q, m) in ms.iter().enumerate() {
+                        let sq = DMatrix::from_column_slice(
+                            bs,
+                            ncols,
+                            &base[q * stride..][..ncols * bs],
+                        );
+                        expect -= m.transpose() * sq;
+                    }
+                    let mut out = vec![f64::NAN; ncols * bs];
+                    tn_multi_neg(simd, bs, &mut out, &mt, &base, stride);
+                    let got = DMatrix::from_column_slice(bs, ncols, &out);
+                    assert!(
+                        (got - expect).amax() < 1e-13,
+                        "bs {bs} nq {nq} ncols {ncols}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn block_mul_add_matches_dense() {
         for bs in 1..=6 {
-            let m = mat(bs, 1);
-            let s = DMatrix::from_fn(bs, 3 * bs, |r, c| (r as f64 * 0.2 + c as f64).sin());
-            let o0 = DMatrix::from_fn(bs, 3 * bs, |r, c| (r as f64 - c as f64).cos());
-            let mut o = o0.clone();
-            tn_strip_sub(bs, o.as_mut_slice(), m.as_slice(), s.as_slice());
-            assert!((o - (&o0 - m.transpose() * &s)).amax() < 1e-13);
             let (a, b, c0) = (mat(bs, 4), mat(bs, 5), mat(bs, 6));
             for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
                 let mut c = c0.clone();
