@@ -13,6 +13,8 @@ pub struct CompletionWorkspace {
     chol: Vec<f64>,
     /// Rows `r0..m` of the factor's inverse, row `q` at `q·m` (length `m`).
     rows: Vec<f64>,
+    /// Reciprocals of the factor's diagonal.
+    dinv: Vec<f64>,
 }
 
 impl CompletionWorkspace {
@@ -25,6 +27,7 @@ impl CompletionWorkspace {
             k,
             chol: vec![0.0; m * m],
             rows: vec![0.0; m * m],
+            dinv: vec![0.0; m],
         }
     }
 }
@@ -61,16 +64,31 @@ pub fn completion_precision(
     if nb == 0 {
         return Ok(());
     }
+    specialise_bk!(bs, k, completion_body(p, out, ws))
+}
+
+#[inline(always)]
+fn completion_body(
+    bs: usize,
+    k: usize,
+    p: &SymBand,
+    out: &mut SymBand,
+    ws: &mut CompletionWorkspace,
+) -> Result<(), BandError> {
+    let nb = p.nb();
     let m = (k + 1) * bs;
+    let a = &mut ws.chol[..m * m];
+    let rows = &mut ws.rows[..m * m];
+    let dinv = &mut ws.dinv[..m];
     for j in 0..nb - k {
-        // Gather the lower triangle of the dense clique (block (a, c), a ≥ c, is P_{j+c,j+a}ᵀ).
-        let a = &mut ws.chol;
+        // Gather the lower triangle of the dense clique (block (r, c), r ≥ c, is P_{j+c,j+r}ᵀ).
         for cb in 0..=k {
-            for ab in cb..=k {
-                let blk = p.block(j + cb, ab - cb);
+            let strip = p.row_strip(j + cb);
+            for rb in cb..=k {
+                let blk = &strip[(rb - cb) * bs * bs..(rb - cb + 1) * bs * bs];
                 for c in 0..bs {
                     for r in 0..bs {
-                        a[(ab * bs + r) + (cb * bs + c) * m] = blk[c + r * bs];
+                        a[(rb * bs + r) + (cb * bs + c) * m] = blk[c + r * bs];
                     }
                 }
             }
@@ -81,35 +99,38 @@ pub fn completion_precision(
                 last: j + k,
             });
         }
+        // Independent divisions, off the dependency chains of the solves below.
+        for i in 0..m {
+            dinv[i] = 1.0 / a[i + i * m];
+        }
         // Rows r0..m of L⁻¹: row r solves Lᵀ x = e_r, so x_i = 0 for i > r.
         let r0 = if j == 0 { 0 } else { k * bs };
-        let l = &ws.chol;
         for r in r0..m {
-            let x = &mut ws.rows[(r - r0) * m..(r - r0 + 1) * m];
-            x[r + 1..].fill(0.0);
-            x[r] = 1.0 / l[r + r * m];
+            let x = &mut rows[(r - r0) * m..(r - r0 + 1) * m];
+            for t in r + 1..m {
+                x[t] = 0.0;
+            }
+            x[r] = dinv[r];
             for i in (0..r).rev() {
-                let col = &l[i * m..(i + 1) * m];
                 let mut acc = 0.0;
                 for t in i + 1..=r {
-                    acc += col[t] * x[t];
+                    acc += a[t + i * m] * x[t];
                 }
-                x[i] = -acc / col[i];
+                x[i] = -acc * dinv[i];
             }
         }
-        // Λ_{C_j} += Xᵀ X on the upper blocks; X's row q has zeros past column r0 + q.
+        // Λ_{C_j} += Xᵀ X on the upper blocks.
         let nrows = m - r0;
-        let rows = &ws.rows[..nrows * m];
         for cb in 0..=k {
-            for ab in 0..=cb {
-                let blk = out.block_mut(j + ab, cb - ab);
+            for rb in 0..=cb {
+                let blk = out.block_mut(j + rb, cb - rb);
                 for c in 0..bs {
                     let col = cb * bs + c;
                     for r in 0..bs {
-                        let row = ab * bs + r;
+                        let row = rb * bs + r;
                         let mut acc = 0.0;
-                        for x in rows.chunks_exact(m) {
-                            acc += x[row] * x[col];
+                        for q in 0..nrows {
+                            acc += rows[row + q * m] * rows[col + q * m];
                         }
                         blk[r + c * bs] += acc;
                     }

@@ -2,23 +2,10 @@
 //!
 //! A "strip" is a column-major `bs × n` matrix with leading dimension `bs`, i.e. `n`
 //! consecutive columns of `bs` entries; a block row of a [`super::SymBand`] or
-//! [`super::GenBand`] is one. The kernels take the block size at run time and are
-//! specialised for `bs = 1..=4` (a `match` calls an `#[inline(always)]` body with a constant,
-//! so the inner loops unroll and the accumulators live in registers).
-
-/// Calls `$body` (an `#[inline(always)]` fn whose first argument is the block size) with a
-/// constant block size for `bs = 1..=4`, so each gets its own unrolled copy.
-macro_rules! specialise {
-    ($bs:expr, $body:ident($($arg:expr),*)) => {
-        match $bs {
-            1 => $body(1, $($arg),*),
-            2 => $body(2, $($arg),*),
-            3 => $body(3, $($arg),*),
-            4 => $body(4, $($arg),*),
-            bs => $body(bs, $($arg),*),
-        }
-    };
-}
+//! [`super::GenBand`] is one. The kernels take the block size at run time; the `_body`
+//! versions are `#[inline(always)]`, so an operation specialised once per call on a constant
+//! block size (see `specialise!` in the parent module) gets unrolled copies with the
+//! accumulators in registers.
 
 /// Largest block size with register accumulators.
 const MAX_FIXED: usize = 4;
@@ -31,7 +18,7 @@ pub fn nt_acc(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
 }
 
 #[inline(always)]
-fn nt_acc_body(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+pub(super) fn nt_acc_body(bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
     debug_assert_eq!(x.len(), y.len());
     debug_assert_eq!(c.len(), bs * bs);
     if bs > MAX_FIXED {
@@ -254,21 +241,8 @@ mod avx2 {
 }
 
 /// `C += alpha · op(A) op(B)` for `bs × bs` blocks, `op(X) = Xᵀ` when the flag is set.
-#[inline]
-pub fn block_mul_add(
-    bs: usize,
-    c: &mut [f64],
-    alpha: f64,
-    a: &[f64],
-    ta: bool,
-    b: &[f64],
-    tb: bool,
-) {
-    specialise!(bs, block_mul_add_body(c, alpha, a, ta, b, tb))
-}
-
 #[inline(always)]
-fn block_mul_add_body(
+pub(super) fn block_mul_add_body(
     bs: usize,
     c: &mut [f64],
     alpha: f64,
@@ -294,20 +268,15 @@ fn block_mul_add_body(
 /// lower triangle is read; on return the lower triangle holds `L` and the strict upper
 /// triangle is zero. Returns `false` when a pivot is not positive (or not finite): the matrix
 /// is not numerically positive definite.
+#[inline(always)]
 pub fn chol_lower(m: usize, a: &mut [f64]) -> bool {
-    debug_assert_eq!(a.len(), m * m);
+    let a = &mut a[..m * m];
     for j in 0..m {
-        // Left-looking: a[j.., j] −= L[j.., 0..j] L[j, 0..j]ᵀ.
+        // L_jj² = A_jj − Σ_p L_jp², then L_ij = (A_ij − Σ_p L_ip L_jp) / L_jj.
+        let mut d = a[j + j * m];
         for p in 0..j {
-            let ljp = a[j + p * m];
-            if ljp != 0.0 {
-                let (colp, colj) = split_cols(a, m, p, j);
-                for i in j..m {
-                    colj[i] -= colp[i] * ljp;
-                }
-            }
+            d -= a[j + p * m] * a[j + p * m];
         }
-        let d = a[j + j * m];
         if d.is_nan() || d <= 0.0 || d.is_infinite() {
             return false;
         }
@@ -315,24 +284,20 @@ pub fn chol_lower(m: usize, a: &mut [f64]) -> bool {
         let inv = 1.0 / l;
         a[j + j * m] = l;
         for i in j + 1..m {
-            a[i + j * m] *= inv;
-        }
-        for i in 0..j {
-            a[i + j * m] = 0.0;
+            let mut v = a[i + j * m];
+            for p in 0..j {
+                v -= a[i + p * m] * a[j + p * m];
+            }
+            a[i + j * m] = v * inv;
+            a[j + i * m] = 0.0;
         }
     }
     true
 }
 
-/// Columns `p < j` of a column-major `m`-row matrix, the first shared, the second mutable.
-#[inline]
-fn split_cols(a: &mut [f64], m: usize, p: usize, j: usize) -> (&[f64], &mut [f64]) {
-    let (head, tail) = a.split_at_mut(j * m);
-    (&head[p * m..(p + 1) * m], &mut tail[..m])
-}
-
 /// `Linv = L⁻¹` for a column-major lower triangular `m × m` `L` with positive diagonal
 /// (forward substitution column by column; the strict upper triangle of `Linv` is zero).
+#[inline(always)]
 pub fn tri_lower_inv(m: usize, l: &[f64], linv: &mut [f64]) {
     linv.fill(0.0);
     for c in 0..m {
@@ -350,6 +315,7 @@ pub fn tri_lower_inv(m: usize, l: &[f64], linv: &mut [f64]) {
 }
 
 /// `C = (C + Cᵀ)/2` for a column-major `m × m` block.
+#[inline(always)]
 pub fn symmetrise(m: usize, c: &mut [f64]) {
     for j in 0..m {
         for i in j + 1..m {
@@ -444,7 +410,7 @@ mod tests {
             let (a, b, c0) = (mat(bs, 4), mat(bs, 5), mat(bs, 6));
             for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
                 let mut c = c0.clone();
-                block_mul_add(
+                block_mul_add_body(
                     bs,
                     c.as_mut_slice(),
                     -2.0,

@@ -9,6 +9,46 @@
 //! column-major `bs × (width+1)·bs` strip. Every operation costs `O(nb)` and allocates nothing
 //! once its workspace exists (they run once per time step with `nb` up to 10⁵).
 
+/// Calls `$body` (an `#[inline(always)]` fn whose first argument is the block size) with a
+/// constant block size for `bs = 1..=4`, so each gets its own unrolled copy.
+macro_rules! specialise {
+    ($bs:expr, $body:ident($($arg:expr),*)) => {
+        match $bs {
+            1 => $body(1, $($arg),*),
+            2 => $body(2, $($arg),*),
+            3 => $body(3, $($arg),*),
+            4 => $body(4, $($arg),*),
+            bs => $body(bs, $($arg),*),
+        }
+    };
+}
+
+/// Calls `$body` (an `#[inline(always)]` fn whose first two arguments are the block size and
+/// the bandwidth) with constants for `bs = 1..=4`, `k = 0..=3`.
+macro_rules! specialise_bk {
+    ($bs:expr, $k:expr, $body:ident($($arg:expr),*)) => {
+        match ($bs, $k) {
+            (1, 0) => $body(1, 0, $($arg),*),
+            (1, 1) => $body(1, 1, $($arg),*),
+            (1, 2) => $body(1, 2, $($arg),*),
+            (1, 3) => $body(1, 3, $($arg),*),
+            (2, 0) => $body(2, 0, $($arg),*),
+            (2, 1) => $body(2, 1, $($arg),*),
+            (2, 2) => $body(2, 2, $($arg),*),
+            (2, 3) => $body(2, 3, $($arg),*),
+            (3, 0) => $body(3, 0, $($arg),*),
+            (3, 1) => $body(3, 1, $($arg),*),
+            (3, 2) => $body(3, 2, $($arg),*),
+            (3, 3) => $body(3, 3, $($arg),*),
+            (4, 0) => $body(4, 0, $($arg),*),
+            (4, 1) => $body(4, 1, $($arg),*),
+            (4, 2) => $body(4, 2, $($arg),*),
+            (4, 3) => $body(4, 3, $($arg),*),
+            (bs, k) => $body(bs, k, $($arg),*),
+        }
+    };
+}
+
 mod cholesky;
 mod completion;
 mod kernels;
