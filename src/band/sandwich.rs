@@ -1,10 +1,10 @@
 //! SPEC §9 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
-use super::kernels::{nt_acc_fast, simd_available, symmetrise};
+use super::kernels::{nt_acc_fast, simd_available};
 use super::{GenBand, SymBand};
 
-/// Preallocated buffers for [`sandwich`]: a ring of full block rows of `P` and one block
-/// row of `W = A P`.
+/// Preallocated buffers for [`sandwich`]: a ring of half block rows of `P` and one block
+/// row of `V = A U`.
 #[derive(Debug, Clone)]
 pub struct SandwichWorkspace {
     nb: usize,
@@ -13,12 +13,14 @@ pub struct SandwichWorkspace {
     k: usize,
     /// Width of `P` that enters: `min(k + 2b, nb − 1)`.
     wp: usize,
-    /// Ring of `k + 2b + 1` full block rows of `P`: row `m` at slot `m mod ring`, the strip
-    /// `[P_{m,m−wp} … P_{m,m+wp}]` of `bs × (2wp+1)·bs` (zero outside the matrix).
+    /// Ring of `k + 2b + 1` half block rows of `P`: row `m` at slot `m mod ring`, the strip
+    /// `[P_{m,m−wp} … P_{m,m−1} ½P_{m,m}]` of `bs × (wp+1)·bs` (zero outside the matrix).
     rows: Vec<f64>,
     ring: usize,
-    /// Block row `i` of `W = A P`, blocks `m = i−b..=i+b+k` at `(m + b − i) bs²`.
-    w_row: Vec<f64>,
+    /// Block row `i` of `V = A U`, blocks `m = i−b..=i+b+k` at `(m + b − i) bs²`.
+    v_row: Vec<f64>,
+    /// One block of `Y = V Aᵀ`.
+    y: Vec<f64>,
 }
 
 impl SandwichWorkspace {
@@ -36,23 +38,30 @@ impl SandwichWorkspace {
             b,
             k,
             wp,
-            rows: vec![0.0; ring * (2 * wp + 1) * bb],
+            rows: vec![0.0; ring * (wp + 1) * bb],
             ring,
-            w_row: vec![0.0; (k + 2 * b + 1) * bb],
+            v_row: vec![0.0; (k + 2 * b + 1) * bb],
+            y: vec![0.0; bb],
         }
     }
 }
 
 /// SPEC §9 predict step 4: `out = band_k(A P Aᵀ)`, `k = out.width()`, for `A` of half-width
-/// `b` and symmetric `P` of width `≥ min(k + 2b, nb − 1)` (only that band of `P` enters):
+/// `b` and symmetric `P` of width `≥ min(k + 2b, nb − 1)` (only that band of `P` enters).
 ///
-/// `W_{i,m} = Σ_{l=i−b}^{i+b} A_{i,l} P_{l,m}` for `m = i−b..=i+b+k`, then
-/// `out_{i,j} = Σ_{m=j−b}^{j+b} W_{i,m} A_{j,m}ᵀ` for `j = i..=i+k` (diagonal symmetrised).
+/// With `P = U + Uᵀ`, `U` the upper block triangle of `P` with its diagonal blocks halved,
+/// `A P Aᵀ = Y + Yᵀ` for `Y = A U Aᵀ`, and the triangular `U` halves the work of the
+/// first product. Per block row `i`:
 ///
-/// Both are products of two block-row strips (`W_{i,m} = A_{i,·} (P_{m,·})ᵀ` over the
-/// columns `l`), so each block is one contiguous dot-product kernel. Block row `m` of `P` is
-/// assembled in full (`P_{m,l} = P_{l,m}ᵀ` for `l < m`) once, into a ring buffer of the
-/// `k + 2b + 1` rows in use. Cost `≈ 2 bs³ (2b+1)(k+2b+2)` per block row. The caller adds `Q`.
+/// `V_{i,m} = Σ_{l=i−b}^{min(i+b, m)} A_{i,l} U_{l,m}` for `m = i−b..=i+b+k`,
+/// `Y_{i,j} = Σ_{m=j−b}^{j+b} V_{i,m} A_{j,m}ᵀ` for `j = i−k..=i+k`,
+///
+/// and `Y_{i,j}` goes to `out_{i,j}` (`j ≥ i`) or, transposed, to `out_{j,i}` (`j ≤ i`).
+/// Both sums are products of two block-row strips (`U_{l,m} = (P_{m,l})ᵀ` over the columns
+/// `l ≤ m` of block row `m`), each one contiguous dot-product kernel. The half rows
+/// `[P_{m,m−wp} … ½P_{m,m}]` are assembled once each into a ring of the `k + 2b + 1` in use.
+/// Cost per block row `2 bs³ [(2b+1)(b+1) + k(2b+1) + (2k+1)(2b+1)]` flops, against
+/// `2 bs³ (2b+1)(2k+2b+2)` for `W = A P` then `W Aᵀ`. The caller adds `Q`.
 pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWorkspace) {
     let (nb, bs, b, k, wp) = (ws.nb, ws.bs, ws.b, ws.k, ws.wp);
     assert_eq!((a.nb(), a.bs(), a.half_width()), (nb, bs, b), "A shape");
@@ -62,61 +71,83 @@ pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWo
         p.width() >= wp,
         "the band of P is narrower than min(k + 2b, nb − 1)"
     );
-    let bb = bs * bs;
-    let row_len = (2 * wp + 1) * bb;
+    specialise!(bs, sandwich_body(a, p, out, ws))
+}
+
+#[inline(always)]
+fn sandwich_body(
+    bs: usize,
+    a: &GenBand,
+    p: &SymBand,
+    out: &mut SymBand,
+    ws: &mut SandwichWorkspace,
+) {
+    let (nb, b, k, wp) = (ws.nb, ws.b, ws.k, ws.wp);
     let simd = simd_available();
+    let bb = bs * bs;
+    let row_len = (wp + 1) * bb;
+    out.fill_zero();
     let mut next_row = 0; // first row of P not yet in the ring
     for i in 0..nb {
         let m_lo = i.saturating_sub(b);
         let m_hi = (i + b + k).min(nb - 1);
         while next_row <= m_hi {
             let slot = next_row % ws.ring;
-            full_row(
-                p,
-                next_row,
-                wp,
-                &mut ws.rows[slot * row_len..(slot + 1) * row_len],
-            );
+            let dst = &mut ws.rows[slot * row_len..(slot + 1) * row_len];
+            half_row(bs, p, next_row, wp, dst);
             next_row += 1;
         }
-        // W_{i,m} = A_{i,·} (P_{m,·})ᵀ over l = l_lo..=l_hi.
+        // V_{i,m} = A_{i,·} (U_{·,m})ᵀ over l = l_lo..=min(l_hi, m).
         let (l_lo, l_hi) = (i.saturating_sub(b), (i + b).min(nb - 1));
-        let ncols = (l_hi + 1 - l_lo) * bb;
-        let a_row = &a.row_strip(i)[(l_lo + b - i) * bb..][..ncols];
-        ws.w_row.fill(0.0);
+        let a_row = a.row_strip(i);
         for m in m_lo..=m_hi {
+            let n = (l_hi.min(m) + 1 - l_lo) * bb;
+            let a_cols = &a_row[(l_lo + b - i) * bb..][..n];
             let slot = m % ws.ring;
-            let p_row = &ws.rows[slot * row_len..(slot + 1) * row_len];
-            let p_cols = &p_row[(l_lo + wp - m) * bb..][..ncols];
-            let w_im = &mut ws.w_row[(m + b - i) * bb..(m + b - i + 1) * bb];
-            nt_acc_fast(simd, bs, w_im, a_row, p_cols, 1.0);
+            let u_cols = &ws.rows[slot * row_len + (l_lo + wp - m) * bb..][..n];
+            let v_im = &mut ws.v_row[(m + b - i) * bb..(m + b - i + 1) * bb];
+            v_im.fill(0.0);
+            nt_acc_fast(simd, bs, v_im, a_cols, u_cols, 1.0);
         }
-        // out_{i,j} = W_{i,·} (A_{j,·})ᵀ over m = j−b..=j+b.
-        let out_row = out.row_strip_mut(i);
-        for j in i..=(i + k).min(nb - 1) {
-            let (lo, hi) = (j.saturating_sub(b), (j + b).min(nb - 1));
+        // Y_{i,j} = V_{i,·} (A_{j,·})ᵀ over m = max(j−b, i−b)..=min(j+b, nb−1).
+        for j in i.saturating_sub(k)..=(i + k).min(nb - 1) {
+            let (lo, hi) = (j.saturating_sub(b).max(m_lo), (j + b).min(nb - 1));
+            if hi < lo {
+                continue; // |i − j| > 2b: Y_{i,j} = 0
+            }
             let n = (hi + 1 - lo) * bb;
-            let w_cols = &ws.w_row[(lo + b - i) * bb..][..n];
+            let v_cols = &ws.v_row[(lo + b - i) * bb..][..n];
             let a_cols = &a.row_strip(j)[(lo + b - j) * bb..][..n];
-            let o = &mut out_row[(j - i) * bb..(j - i + 1) * bb];
-            o.fill(0.0);
-            nt_acc_fast(simd, bs, o, w_cols, a_cols, 1.0);
+            let y = &mut ws.y[..];
+            y.fill(0.0);
+            nt_acc_fast(simd, bs, y, v_cols, a_cols, 1.0);
+            if j >= i {
+                let o = out.block_mut(i, j - i);
+                for e in 0..bb {
+                    o[e] += y[e];
+                }
+            }
+            if j <= i {
+                let o = out.block_mut(j, i - j);
+                for c in 0..bs {
+                    for r in 0..bs {
+                        o[r + c * bs] += y[c + r * bs];
+                    }
+                }
+            }
         }
-        symmetrise(bs, &mut out_row[..bb]);
     }
 }
 
-/// Block row `m` of the symmetric `P` in full: `dst` = `[P_{m,m−wp} … P_{m,m+wp}]`, zero
-/// outside the matrix.
-fn full_row(p: &SymBand, m: usize, wp: usize, dst: &mut [f64]) {
-    let (nb, bs) = (p.nb(), p.bs());
+/// The left half of block row `m` of the symmetric `P`, diagonal halved:
+/// `dst = [P_{m,m−wp} … P_{m,m−1} ½P_{m,m}]`, zero outside the matrix.
+#[inline(always)]
+fn half_row(bs: usize, p: &SymBand, m: usize, wp: usize, dst: &mut [f64]) {
     let bb = bs * bs;
-    dst.fill(0.0);
-    // l ≥ m: the stored strip of row m.
-    let n_up = (m + wp).min(nb - 1) + 1 - m;
-    dst[wp * bb..(wp + n_up) * bb].copy_from_slice(&p.row_strip(m)[..n_up * bb]);
+    let first = m.saturating_sub(wp);
+    dst[..(first + wp - m) * bb].fill(0.0);
     // l < m: P_{m,l} = P_{l,m}ᵀ.
-    for l in m.saturating_sub(wp)..m {
+    for l in first..m {
         let src = p.block(l, m - l);
         let blk = &mut dst[(l + wp - m) * bb..(l + wp - m + 1) * bb];
         for c in 0..bs {
@@ -124,5 +155,9 @@ fn full_row(p: &SymBand, m: usize, wp: usize, dst: &mut [f64]) {
                 blk[r + c * bs] = src[c + r * bs];
             }
         }
+    }
+    let diag = p.block(m, 0);
+    for (d, s) in dst[wp * bb..].iter_mut().zip(diag) {
+        *d = 0.5 * s;
     }
 }
