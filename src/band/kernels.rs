@@ -354,8 +354,10 @@ mod tests {
 
     #[test]
     fn nt_acc_fast_matches_dense_for_every_length() {
-        let simd = simd_available();
-        for bs in 1..=3 {
+        for (simd, bs) in [false, simd_available()]
+            .into_iter()
+            .flat_map(|s| (1..=3).map(move |b| (s, b)))
+        {
             for ncols in 0..=21 {
                 let x = DMatrix::from_fn(bs, ncols, |r, c| (r as f64 - 0.3 * c as f64).sin());
                 let y = DMatrix::from_fn(bs, ncols, |r, c| (0.5 * r as f64 + c as f64).cos());
@@ -370,8 +372,10 @@ mod tests {
 
     #[test]
     fn tn_multi_neg_matches_dense() {
-        let simd = simd_available();
-        for bs in 1..=5 {
+        for (simd, bs) in [false, simd_available()]
+            .into_iter()
+            .flat_map(|s| (1..=5).map(move |b| (s, b)))
+        {
             for nq in 0..=3 {
                 for ncols in [1, 2, 3, 8, 13] {
                     let stride = ncols * bs + 3;
