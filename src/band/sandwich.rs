@@ -60,7 +60,7 @@ impl SandwichWorkspace {
 /// Both sums are products of two block-row strips (`U_{l,m} = (P_{m,l})ᵀ` over the columns
 /// `l ≤ m` of block row `m`), each one contiguous dot-product kernel. The half rows
 /// `[P_{m,m−wp} … ½P_{m,m}]` are assembled once each into a ring of the `k + 2b + 1` in use.
-/// Cost per block row `2 bs³ [(2b+1)(b+1) + k(2b+1) + (2k+1)(2b+1)]` flops, against
+/// Cost per block row `≈ 2 bs³ [(2b+1)(b+1) + k(2b+1) + (2k+1)(2b+1)]` flops, against
 /// `2 bs³ (2b+1)(2k+2b+2)` for `W = A P` then `W Aᵀ`. The caller adds `Q`.
 pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWorkspace) {
     let (nb, bs, b, k, wp) = (ws.nb, ws.bs, ws.b, ws.k, ws.wp);
