@@ -141,7 +141,7 @@ fn completion_precision_inverse_matches_band_and_is_banded() {
         let p = SymBand::from_dense(&s, bs, (k + 1).min(nb - 1));
         let mut lambda = SymBand::zeros(nb, bs, k);
         poison(&mut lambda);
-        let mut ws = CompletionWorkspace::new(nb, bs, k);
+        let mut ws = CompletionWorkspace::new(nb, bs, k + 1);
         completion_precision(&p, k, &mut lambda, &mut ws).unwrap();
         assert_eq!(lambda.width(), k);
         assert_clean(&lambda);
@@ -339,7 +339,8 @@ fn sandwich_matches_dense_product_band() {
         let ad = a.to_dense();
         let expect = band_of(&(&ad * &s * ad.transpose()), bs, k);
         let wp = (k + 2 * b).min(nb - 1);
-        let mut ws = SandwichWorkspace::new(nb, bs, b, k);
+        // A workspace built for a wider A and band serves this one too.
+        let mut ws = SandwichWorkspace::new(nb, bs, b + 2, k + 1);
         for width in [wp, nb - 1] {
             let p = SymBand::from_dense(&s, bs, width);
             let mut out = SymBand::zeros(nb, bs, k);

@@ -9,37 +9,42 @@ use super::{GenBand, SymBand};
 pub struct SandwichWorkspace {
     nb: usize,
     bs: usize,
-    b: usize,
-    k: usize,
-    /// Width of `P` that enters: `min(k + 2b, nb − 1)`.
-    wp: usize,
+    /// Largest half-width of `A` and output width the buffers serve.
+    b_max: usize,
+    k_max: usize,
     /// Ring of `k + 2b + 1` half block rows of `P`: row `m` at slot `m mod ring`, the strip
-    /// `[P_{m,m−wp} … P_{m,m−1} ½P_{m,m}]` of `bs × (wp+1)·bs` (zero outside the matrix).
+    /// `[P_{m,m−wp} … P_{m,m−1} ½P_{m,m}]` of `bs × (wp+1)·bs` (zero outside the matrix),
+    /// `wp = min(k + 2b, nb − 1)`.
     rows: Vec<f64>,
-    ring: usize,
     /// Block row `i` of `V = A U`, blocks `m = i−b..=i+b+k` at `(m + b − i) bs²`.
     v_row: Vec<f64>,
     /// One block of `Y = V Aᵀ`.
     y: Vec<f64>,
 }
 
+/// `(wp, ring)` for half-width `b` and output width `k`: the width of `P` that enters and the
+/// number of its rows in use at once.
+fn shape(nb: usize, b: usize, k: usize) -> (usize, usize) {
+    (
+        (k + 2 * b).min(nb.saturating_sub(1)),
+        (k + 2 * b + 1).min(nb.max(1)),
+    )
+}
+
 impl SandwichWorkspace {
-    /// Buffers for `nb` blocks of size `bs`, `A` of half-width `b` and output width `k`
-    /// (both clamped to `nb − 1`).
+    /// Buffers for `nb` blocks of size `bs`, `A` of half-width up to `b` and output width up
+    /// to `k` (both clamped to `nb − 1`).
     pub fn new(nb: usize, bs: usize, b: usize, k: usize) -> Self {
         let top = nb.saturating_sub(1);
         let (b, k) = (b.min(top), k.min(top));
-        let wp = (k + 2 * b).min(top);
-        let ring = (k + 2 * b + 1).min(nb.max(1));
+        let (wp, ring) = shape(nb, b, k);
         let bb = bs * bs;
         Self {
             nb,
             bs,
-            b,
-            k,
-            wp,
+            b_max: b,
+            k_max: k,
             rows: vec![0.0; ring * (wp + 1) * bb],
-            ring,
             v_row: vec![0.0; (k + 2 * b + 1) * bb],
             y: vec![0.0; bb],
         }
@@ -61,12 +66,19 @@ impl SandwichWorkspace {
 /// `l ≤ m` of block row `m`), each one contiguous dot-product kernel. The half rows
 /// `[P_{m,m−wp} … ½P_{m,m}]` are assembled once each into a ring of the `k + 2b + 1` in use.
 /// Cost per block row `≈ 2 bs³ [(2b+1)(b+1) + k(2b+1) + (2k+1)(2b+1)]` flops, against
-/// `2 bs³ (2b+1)(2k+2b+2)` for `W = A P` then `W Aᵀ`. The caller adds `Q`.
+/// `2 bs³ (2b+1)(2k+2b+2)` for `W = A P` then `W Aᵀ`. The caller adds `Q`. A workspace
+/// built for `(b, k)` serves any smaller half-width and band.
 pub fn sandwich(a: &GenBand, p: &SymBand, out: &mut SymBand, ws: &mut SandwichWorkspace) {
-    let (nb, bs, b, k, wp) = (ws.nb, ws.bs, ws.b, ws.k, ws.wp);
-    assert_eq!((a.nb(), a.bs(), a.half_width()), (nb, bs, b), "A shape");
-    assert_eq!((out.nb(), out.bs(), out.width()), (nb, bs, k), "out shape");
+    let (nb, bs) = (ws.nb, ws.bs);
+    assert_eq!((a.nb(), a.bs()), (nb, bs), "A shape");
+    assert_eq!((out.nb(), out.bs()), (nb, bs), "out shape");
     assert_eq!((p.nb(), p.bs()), (nb, bs), "P shape");
+    let (b, k) = (a.half_width(), out.width());
+    assert!(
+        b <= ws.b_max && k <= ws.k_max,
+        "workspace built for a narrower A or band"
+    );
+    let (wp, _) = shape(nb, b, k);
     assert!(
         p.width() >= wp,
         "the band of P is narrower than min(k + 2b, nb − 1)"
@@ -82,7 +94,8 @@ fn sandwich_body(
     out: &mut SymBand,
     ws: &mut SandwichWorkspace,
 ) {
-    let (nb, b, k, wp) = (ws.nb, ws.b, ws.k, ws.wp);
+    let (nb, b, k) = (ws.nb, a.half_width(), out.width());
+    let (wp, ring) = shape(nb, b, k);
     let simd = simd_available();
     let bb = bs * bs;
     let row_len = (wp + 1) * bb;
@@ -92,7 +105,7 @@ fn sandwich_body(
         let m_lo = i.saturating_sub(b);
         let m_hi = (i + b + k).min(nb - 1);
         while next_row <= m_hi {
-            let slot = next_row % ws.ring;
+            let slot = next_row % ring;
             let dst = &mut ws.rows[slot * row_len..(slot + 1) * row_len];
             half_row(bs, p, next_row, wp, dst);
             next_row += 1;
@@ -103,7 +116,7 @@ fn sandwich_body(
         for m in m_lo..=m_hi {
             let n = (l_hi.min(m) + 1 - l_lo) * bb;
             let a_cols = &a_row[(l_lo + b - i) * bb..][..n];
-            let slot = m % ws.ring;
+            let slot = m % ring;
             let u_cols = &ws.rows[slot * row_len + (l_lo + wp - m) * bb..][..n];
             let v_im = &mut ws.v_row[(m + b - i) * bb..(m + b - i + 1) * bb];
             v_im.fill(0.0);
