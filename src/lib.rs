@@ -19,6 +19,8 @@
 //! - [`config`]: the TOML as written; [`model`]: the validated model and parameters at `(t, i)`.
 //! - [`inputs`]: `u(t, ·)`; [`simulate`]: the true system with dropouts.
 //! - [`interconnect`]: step 1, the chain solve (on [`band_lu`]); [`lifted`]: the lifted system.
+//! - [`band`]: block-banded matrices for the joint band-`k` filter (SPEC §9): max-entropy
+//!   completion precision, banded Cholesky, selected inversion, banded sandwich products.
 //! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
 //! - [`plot`]: SVG figures from those files.
 //! - [`cli`], [`commands`]: the command line; [`messages`]: the one format of standard error.

@@ -9,6 +9,46 @@
 //! column-major `bs × (width+1)·bs` strip. Every operation costs `O(nb)` and allocates nothing
 //! once its workspace exists (they run once per time step with `nb` up to 10⁵).
 
+/// Calls `$body` (an `#[inline(always)]` fn whose first argument is the block size) with a
+/// constant block size for `bs = 1..=4`, so each gets its own unrolled copy.
+macro_rules! specialise {
+    ($bs:expr, $body:ident($($arg:expr),*)) => {
+        match $bs {
+            1 => $body(1, $($arg),*),
+            2 => $body(2, $($arg),*),
+            3 => $body(3, $($arg),*),
+            4 => $body(4, $($arg),*),
+            bs => $body(bs, $($arg),*),
+        }
+    };
+}
+
+/// Calls `$body` (an `#[inline(always)]` fn whose first two arguments are the block size and
+/// the bandwidth) with constants for `bs = 1..=4`, `k = 0..=3`.
+macro_rules! specialise_bk {
+    ($bs:expr, $k:expr, $body:ident($($arg:expr),*)) => {
+        match ($bs, $k) {
+            (1, 0) => $body(1, 0, $($arg),*),
+            (1, 1) => $body(1, 1, $($arg),*),
+            (1, 2) => $body(1, 2, $($arg),*),
+            (1, 3) => $body(1, 3, $($arg),*),
+            (2, 0) => $body(2, 0, $($arg),*),
+            (2, 1) => $body(2, 1, $($arg),*),
+            (2, 2) => $body(2, 2, $($arg),*),
+            (2, 3) => $body(2, 3, $($arg),*),
+            (3, 0) => $body(3, 0, $($arg),*),
+            (3, 1) => $body(3, 1, $($arg),*),
+            (3, 2) => $body(3, 2, $($arg),*),
+            (3, 3) => $body(3, 3, $($arg),*),
+            (4, 0) => $body(4, 0, $($arg),*),
+            (4, 1) => $body(4, 1, $($arg),*),
+            (4, 2) => $body(4, 2, $($arg),*),
+            (4, 3) => $body(4, 3, $($arg),*),
+            (bs, k) => $body(bs, k, $($arg),*),
+        }
+    };
+}
+
 mod cholesky;
 mod completion;
 mod kernels;
@@ -118,6 +158,12 @@ impl SymBand {
     /// Sets every entry to zero.
     pub fn fill_zero(&mut self) {
         self.data.fill(0.0);
+    }
+
+    /// All block rows, one strip after the other (see [`SymBand::row_strip`]).
+    #[inline]
+    pub(crate) fn data_mut(&mut self) -> &mut [f64] {
+        &mut self.data
     }
 
     /// Copies the blocks with `d ≤ min(self.width, src.width)`; the others become zero.
@@ -283,182 +329,5 @@ impl GenBand {
             }
         }
         g
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    //! Every operation against dense nalgebra on random SPD block-band matrices.
-    use super::*;
-    use rand::{RngExt, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-
-    /// A random SPD matrix of `nb × nb` blocks of size `bs` (dense, full).
-    fn random_spd(nb: usize, bs: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
-        let n = nb * bs;
-        let f = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
-        &f * f.transpose() + DMatrix::identity(n, n) * (n as f64 * 0.1)
-    }
-
-    /// The block band of width `w` of `a`, zero elsewhere (dense).
-    fn band_of(a: &DMatrix<f64>, bs: usize, w: usize) -> DMatrix<f64> {
-        SymBand::from_dense(a, bs, w).to_dense()
-    }
-
-    fn rel(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
-        (a - b).amax() / b.amax().max(1e-300)
-    }
-
-    fn cases() -> Vec<(usize, usize, usize)> {
-        let mut v = vec![];
-        for nb in [1_usize, 2, 3, 6, 9] {
-            for bs in [1, 2, 3] {
-                for k in [0, 1, 2, nb.saturating_sub(1)] {
-                    v.push((nb, bs, k.min(nb - 1)));
-                }
-            }
-        }
-        v.push((5, 4, 2));
-        v
-    }
-
-    #[test]
-    fn completion_inverse_agrees_with_band_and_is_banded() {
-        let mut rng = ChaCha8Rng::seed_from_u64(1);
-        for (nb, bs, k) in cases() {
-            let p = random_spd(nb, bs, &mut rng);
-            let band = SymBand::from_dense(&p, bs, k);
-            let mut lam = SymBand::zeros(nb, bs, k);
-            let mut ws = CompletionWorkspace::new(nb, bs, k);
-            completion_precision(&band, k, &mut lam, &mut ws).unwrap();
-            let dense_lam = lam.to_dense();
-            let completed = dense_lam.clone().try_inverse().unwrap();
-            // The completion agrees with P on the band (Λ is banded by construction).
-            let err = rel(&band_of(&completed, bs, k), &band_of(&p, bs, k));
-            assert!(err < 1e-10, "nb {nb} bs {bs} k {k}: {err:e}");
-        }
-    }
-
-    #[test]
-    fn cholesky_solve_and_selected_inverse_match_dense() {
-        let mut rng = ChaCha8Rng::seed_from_u64(2);
-        for (nb, bs, k) in cases() {
-            // A banded SPD Λ: the completion precision of a random SPD band.
-            let p = random_spd(nb, bs, &mut rng);
-            let mut lam = SymBand::zeros(nb, bs, k);
-            let mut ws = CompletionWorkspace::new(nb, bs, k);
-            completion_precision(&SymBand::from_dense(&p, bs, k), k, &mut lam, &mut ws).unwrap();
-            let dense = lam.to_dense();
-            let mut chol = BandCholesky::new(nb, bs, k);
-            chol.factor(&lam).unwrap();
-            let x: Vec<f64> = (0..nb * bs).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let mut y = x.clone();
-            chol.solve_in_place(&mut y);
-            let expect = dense
-                .clone()
-                .lu()
-                .solve(&nalgebra::DVector::from_vec(x))
-                .unwrap();
-            let err = (nalgebra::DVector::from_vec(y) - &expect).amax() / expect.amax();
-            assert!(err < 1e-10, "solve nb {nb} bs {bs} k {k}: {err:e}");
-            let inv = dense.try_inverse().unwrap();
-            for w in k..nb {
-                let mut out = SymBand::zeros(nb, bs, w);
-                chol.selected_inverse(&mut out);
-                let err = rel(&out.to_dense(), &band_of(&inv, bs, w));
-                assert!(
-                    err < 1e-10,
-                    "selected inverse nb {nb} bs {bs} k {k} w {w}: {err:e}"
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn sandwich_matches_dense_product() {
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
-        for (nb, bs, k) in cases() {
-            for b in [0, 1, 3] {
-                let n = nb * bs;
-                let a_full = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
-                let a = GenBand::from_dense(&a_full, bs, b);
-                let a_dense = a.to_dense();
-                let p = random_spd(nb, bs, &mut rng);
-                let w = (k + 2 * b).min(nb - 1);
-                let pb = SymBand::from_dense(&p, bs, w);
-                let mut out = SymBand::zeros(nb, bs, k);
-                let mut ws = SandwichWorkspace::new(nb, bs, b, k);
-                sandwich(&a, &pb, &mut out, &mut ws);
-                // Only the band w of P can reach the band k of A P Aᵀ: compare with full P.
-                let expect = band_of(&(&a_dense * &p * a_dense.transpose()), bs, k);
-                let err = rel(&out.to_dense(), &expect);
-                assert!(err < 1e-12, "nb {nb} bs {bs} k {k} b {b}: {err:e}");
-            }
-        }
-    }
-
-    #[test]
-    fn smoother_products_match_dense() {
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        for (nb, bs, k) in cases() {
-            for b in [0, 1, 2] {
-                let n = nb * bs;
-                let a = GenBand::from_dense(
-                    &DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0)),
-                    bs,
-                    b,
-                );
-                let s = SymBand::from_dense(&random_spd(nb, bs, &mut rng), bs, k);
-                let (ad, sd) = (a.to_dense(), s.to_dense());
-                let mut w = GenBand::zeros(nb, bs, k + b);
-                sym_times_gen(&s, &a, &mut w);
-                assert!(
-                    rel(&w.to_dense(), &(&sd * &ad)) < 1e-12,
-                    "S A: {nb} {bs} {k} {b}"
-                );
-                let mut m = SymBand::zeros(nb, bs, k + 2 * b);
-                gen_t_times_gen(&a, &w, &mut m);
-                let expect = ad.transpose() * &sd * &ad;
-                assert!(
-                    rel(&m.to_dense(), &expect) < 1e-12,
-                    "Aᵀ S A: {nb} {bs} {k} {b}"
-                );
-                let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
-                let xv = nalgebra::DVector::from_column_slice(&x);
-                let mut out = vec![0.0; n];
-                s.mul_vec(&x, &mut out);
-                assert!((nalgebra::DVector::from_vec(out.clone()) - &sd * &xv).amax() < 1e-12);
-                a.mul_vec_transposed(&x, &mut out);
-                assert!((nalgebra::DVector::from_vec(out) - ad.transpose() * &xv).amax() < 1e-12);
-            }
-        }
-    }
-
-    #[test]
-    fn non_positive_definite_inputs_name_the_block() {
-        let nb = 4;
-        let mut p = SymBand::zeros(nb, 1, 1);
-        for i in 0..nb {
-            p.block_mut(i, 0)[0] = 1.0;
-        }
-        for i in 0..nb - 1 {
-            p.block_mut(i, 1)[0] = 0.5;
-        }
-        p.block_mut(2, 1)[0] = 2.0; // clique {2, 3}: [[1, 2], [2, 1]] is indefinite
-        let mut lam = SymBand::zeros(nb, 1, 1);
-        let mut ws = CompletionWorkspace::new(nb, 1, 1);
-        assert_eq!(
-            completion_precision(&p, 1, &mut lam, &mut ws),
-            Err(BandError::CliqueNotPositiveDefinite { first: 2, last: 3 })
-        );
-        let mut a = SymBand::zeros(nb, 1, 1);
-        for i in 0..nb {
-            a.block_mut(i, 0)[0] = if i == 1 { -1.0 } else { 2.0 };
-        }
-        let mut chol = BandCholesky::new(nb, 1, 1);
-        assert_eq!(
-            chol.factor(&a),
-            Err(BandError::PivotNotPositiveDefinite { block: 1 })
-        );
     }
 }

@@ -88,3 +88,71 @@ impl GenBand {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DMatrix;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random_spd(nb: usize, bs: usize, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
+        let n = nb * bs;
+        let f = DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0));
+        &f * f.transpose() + DMatrix::identity(n, n) * (n as f64 * 0.1)
+    }
+
+    fn rel(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
+        (a - b).amax() / b.amax().max(1e-300)
+    }
+
+    fn cases() -> Vec<(usize, usize, usize)> {
+        let mut v = vec![];
+        for nb in [1_usize, 2, 3, 6, 9] {
+            for bs in [1, 2, 3] {
+                for k in [0, 1, 2, nb - 1] {
+                    v.push((nb, bs, k.min(nb - 1)));
+                }
+            }
+        }
+        v.push((5, 4, 2));
+        v
+    }
+
+    #[test]
+    fn smoother_products_match_dense() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        for (nb, bs, k) in cases() {
+            for b in [0, 1, 2] {
+                let n = nb * bs;
+                let a = GenBand::from_dense(
+                    &DMatrix::from_fn(n, n, |_, _| rng.random_range(-1.0..1.0)),
+                    bs,
+                    b,
+                );
+                let s = SymBand::from_dense(&random_spd(nb, bs, &mut rng), bs, k);
+                let (ad, sd) = (a.to_dense(), s.to_dense());
+                let mut w = GenBand::zeros(nb, bs, k + b);
+                sym_times_gen(&s, &a, &mut w);
+                assert!(
+                    rel(&w.to_dense(), &(&sd * &ad)) < 1e-12,
+                    "S A: {nb} {bs} {k} {b}"
+                );
+                let mut m = SymBand::zeros(nb, bs, k + 2 * b);
+                gen_t_times_gen(&a, &w, &mut m);
+                let expect = ad.transpose() * &sd * &ad;
+                assert!(
+                    rel(&m.to_dense(), &expect) < 1e-12,
+                    "Aᵀ S A: {nb} {bs} {k} {b}"
+                );
+                let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let xv = nalgebra::DVector::from_column_slice(&x);
+                let mut out = vec![0.0; n];
+                s.mul_vec(&x, &mut out);
+                assert!((nalgebra::DVector::from_vec(out.clone()) - &sd * &xv).amax() < 1e-12);
+                a.mul_vec_transposed(&x, &mut out);
+                assert!((nalgebra::DVector::from_vec(out) - ad.transpose() * &xv).amax() < 1e-12);
+            }
+        }
+    }
+}
