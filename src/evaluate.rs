@@ -153,6 +153,10 @@ fn realise(model: &Model, seed: u64) -> Result<Realisation> {
     Ok(r)
 }
 
+/// Largest simulated realisation `evaluate` keeps in memory (one per thread at a time): a
+/// `steps` far too large is refused rather than aborting the process on allocation.
+const MAX_REALISATION_BYTES: usize = 1 << 30;
+
 /// Largest centralized schedule `evaluate` keeps in memory; above it the centralized filter
 /// runs in full for every run.
 const MAX_SCHEDULE_BYTES: usize = 1 << 30;
@@ -339,6 +343,20 @@ pub fn evaluate(
     let start = Instant::now();
     if opts.runs == 0 {
         return Err(Error::Usage("--runs must be at least 1".into()));
+    }
+    let d = model.dims;
+    // x, y, y with the losses marked, u, and a vector header for each, per step.
+    let per_step = (model.subsystems * (d.n + 2 * d.q + d.m) + 12) * std::mem::size_of::<f64>();
+    let realisation_bytes = (model.steps as f64) * (per_step as f64);
+    if realisation_bytes > MAX_REALISATION_BYTES as f64 {
+        return Err(Error::Config {
+            file: model.name.clone(),
+            key: "steps".into(),
+            msg: format!(
+                "evaluate keeps every step of a run in memory: {} steps need about {realisation_bytes:.1e} bytes per run, expected at most {MAX_REALISATION_BYTES}",
+                model.steps
+            ),
+        });
     }
     if let Some(bad) = opts.filters.iter().find(|f| !FILTERS.contains(&f.as_str())) {
         return Err(Error::Usage(format!(

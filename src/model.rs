@@ -164,6 +164,12 @@ pub struct Model {
 /// so a mistyped `subsystems` must be refused rather than abort the process on allocation.
 pub const MAX_SUBSYSTEMS: usize = 10_000_000;
 
+/// Largest `N · k²`, `k` the largest of `n`, `q`, `m` and `n⁺ + n⁻`: the filters keep a few
+/// `k × k` blocks per subsystem (covariances, second moments, the banded solve), allocated up
+/// front, so a chain far too large for memory is refused here rather than aborting the process
+/// on allocation (2²⁷ values are 1 GiB per such array).
+pub const MAX_CHAIN_VALUES: usize = 1 << 27;
+
 /// Relative tolerance of the symmetry and semidefiniteness checks on config matrices.
 const SYMMETRY_TOL: f64 = 1e-10;
 
@@ -423,6 +429,16 @@ impl Model {
             plus,
             minus,
         };
+        let k = n.max(q).max(dims.m).max(dims.s());
+        if subsystems.saturating_mul(k.saturating_mul(k)) > MAX_CHAIN_VALUES {
+            return Err(c.err(
+                "subsystems",
+                format!(
+                    "{subsystems} subsystems of size {k} need about {:.1e} bytes per covariance array: expected N · {k}² ≤ {MAX_CHAIN_VALUES}",
+                    (subsystems as f64) * (k * k * 8) as f64
+                ),
+            ));
+        }
 
         let matrix = |key: &'static str, raw_m: Option<&RawMatrix>, prefix: &str| {
             let (r, cols, what) = expected_shape(&dims, key);
