@@ -46,13 +46,6 @@ fn run(f: &mut dyn ChainFilter, ys: &[Vec<f64>], us: &[Vec<f64>]) {
     }
 }
 
-fn one_thread() -> rayon::ThreadPool {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-}
-
 fn joint_filter(c: &mut Criterion) {
     let mut g = c.benchmark_group("joint_filter");
     g.sample_size(10);
