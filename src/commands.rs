@@ -38,7 +38,9 @@ pub fn run(command: Command) -> Result<()> {
     match command {
         Command::Check { config } => check(&config),
         Command::Simulate(args) => simulate_command(&args),
-        Command::Estimate(args) => estimate(&args),
+        // On a worker of rayon's pool, so that the parallel loops of every step (filter,
+        // writer, readers) start without waking the pool from outside each time.
+        Command::Estimate(args) => rayon::scope(|_| estimate(&args)),
         Command::Evaluate(args) => evaluate_command(&args),
     }
 }
