@@ -30,6 +30,11 @@ RESULTS=$WORK/results.jsonl
 log() { echo "[bench $(date +%H:%M:%S)] $*" >&2; }
 
 # --- tools -------------------------------------------------------------------------------
+if [ ! -c /dev/null ]; then
+    echo "error: /dev/null is not a character device (something replaced it with a file);" \
+        "restore it first: rm /dev/null && mknod -m 666 /dev/null c 1 3" >&2
+    exit 1
+fi
 if [ ! -x /usr/bin/time ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
         log "installing GNU time"

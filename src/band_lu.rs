@@ -438,20 +438,55 @@ impl SplitBandLu {
         self.m1 + self.second.n
     }
 
+    /// Order of the first block.
+    pub fn first_rows(&self) -> usize {
+        self.m1
+    }
+
     /// Solves `A x = b` in place, the two blocks in parallel (rayon); `seam` is scratch of
     /// `kl + ku` values. The result does not depend on the thread count.
     pub fn solve(&self, b: &mut [f64], seam: &mut [f64]) {
+        self.solve_with(b, seam, |_, _| {}, |_| {}, |_| {});
+    }
+
+    /// [`SplitBandLu::solve`], with the right-hand side filled in place by
+    /// `fill(first_row, rows)` and the solution read by `take_first` and `take_second`, each
+    /// on the thread that solves its block (so that moving data in and out runs in parallel
+    /// too).
+    pub fn solve_with(
+        &self,
+        b: &mut [f64],
+        seam: &mut [f64],
+        fill: impl Fn(usize, &mut [f64]) + Sync,
+        take_first: impl FnOnce(&[f64]) + Send,
+        take_second: impl FnOnce(&[f64]) + Send,
+    ) {
         let (m1, kl, ku) = (self.m1, self.kl, self.ku);
         let (b1, b2) = b.split_at_mut(m1);
-        rayon::join(|| self.first.solve(b1), || self.second.solve(b2));
+        rayon::join(
+            || {
+                fill(0, b1);
+                self.first.solve(b1)
+            },
+            || {
+                fill(m1, b2);
+                self.second.solve(b2)
+            },
+        );
         let seam = &mut seam[..kl + ku];
         seam[..kl].copy_from_slice(&b1[m1 - kl..]);
         seam[kl..].copy_from_slice(&b2[..ku]);
         self.reduced.solve(seam);
         let (x1_end, x2_start) = seam.split_at(kl);
         rayon::join(
-            || subtract_spikes(b1, &self.v, x2_start),
-            || subtract_spikes(b2, &self.w, x1_end),
+            || {
+                subtract_spikes(b1, &self.v, x2_start);
+                take_first(b1)
+            },
+            || {
+                subtract_spikes(b2, &self.w, x1_end);
+                take_second(b2)
+            },
         );
     }
 }

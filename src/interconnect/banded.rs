@@ -175,30 +175,46 @@ impl ChainSolver {
         }
         let order = links * s;
         rhs.resize(order + 3 * s, 0.0); // and the split solve's seam, kl + ku = 3s − 2
-        for i in 1..=links {
-            let base = (i - 1) * s;
-            for k in 0..p {
-                rhs[base + k] = z[base + k];
+        // Link j (0-based) holds [a(j); b(j)] = [z⁺(j); z⁻(j+1)] on the right and
+        // [v⁺(j+1); v⁻(j)] in the solution, so links first..last read z and write v over
+        // contiguous ranges, and the two halves of a split solve move their data in parallel.
+        let fill = |first_row: usize, part: &mut [f64]| {
+            let first = first_row / s;
+            for (jj, row) in part.chunks_exact_mut(s).enumerate() {
+                let base = (first + jj) * s;
+                for k in 0..p {
+                    row[k] = z[base + k];
+                }
+                for k in p..s {
+                    row[k] = z[base + s + k];
+                }
             }
-            for k in p..s {
-                rhs[base + k] = z[base + s + k];
+        };
+        // `out` starts at v[first·s + p].
+        let take = |part: &[f64], out: &mut [f64]| {
+            for (row, o) in part.chunks_exact(s).zip(out.chunks_exact_mut(s)) {
+                for k in p..s {
+                    o[k - p] = row[k];
+                }
+                for k in 0..p {
+                    o[m + k] = row[k];
+                }
             }
-        }
-        let (rhs, seam) = rhs.split_at_mut(order);
-        match &self.split {
-            Some(split) => split.solve(rhs, seam),
-            None => self.lu.solve(rhs),
-        }
-        // v⁺(1) = 0 and v⁻(N) = 0 (P4); a(i) = v⁺(i+1), b(i) = v⁻(i).
+        };
+        // v⁺(1) = 0 and v⁻(N) = 0 (P4).
         v[..p].fill(0.0);
-        v[links * s + p..].fill(0.0);
-        for i in 1..=links {
-            let base = (i - 1) * s;
-            for k in 0..p {
-                v[base + s + k] = rhs[base + k];
+        v[order + p..].fill(0.0);
+        let (rhs, seam) = rhs.split_at_mut(order);
+        let out = &mut v[p..order + p];
+        match &self.split {
+            Some(split) => {
+                let (out1, out2) = out.split_at_mut(split.first_rows());
+                split.solve_with(rhs, seam, fill, |x| take(x, out1), |x| take(x, out2));
             }
-            for k in p..s {
-                v[base + k] = rhs[base + k];
+            None => {
+                fill(0, rhs);
+                self.lu.solve(rhs);
+                take(rhs, out);
             }
         }
     }
