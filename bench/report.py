@@ -43,7 +43,7 @@ def parse_gnu_time(text):
 
 TIMINGS = re.compile(
     r"timings: read ([\d.]+) s, filter ([\d.]+) s, write ([\d.]+) s, other ([\d.]+) s, "
-    r"total ([\d.]+) s, (\d+) rows"
+    r"total ([\d.]+) s, (\d+) rows.*?writer thread was busy ([\d.]+) s"
 )
 
 
@@ -57,6 +57,7 @@ def record(results, name, threads, time_file, stderr_file):
         keys = ["read", "filter", "write", "other", "total"]
         run.update({k: float(v) for k, v in zip(keys, m.groups()[:5])})
         run["rows"] = int(m.group(6))
+        run["writer"] = float(m.group(7))
     if run.get("exit", 0) != 0:
         sys.exit(f"error: case {name} failed:\n{err}")
     run.update(name=name, threads=int(threads))

@@ -117,7 +117,8 @@ pub struct EstimateArgs {
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
     /// Print on standard error the wall-clock time spent reading the input files, filtering
-    /// and writing the estimates (a `timings:` line).
+    /// and handing the estimates to the writer thread, and the time that thread spent
+    /// formatting and writing them (a `timings:` line).
     #[arg(long)]
     pub timings: bool,
 }

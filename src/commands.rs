@@ -15,7 +15,7 @@ use crate::error::Error;
 use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, TwoStepOptions, two_step};
 use crate::inputs::{InputStream, open_csv};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
-use crate::io::estimates::{EstimatesWriter, Format};
+use crate::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
 use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
 use crate::lifted::spectral_radius;
 use crate::model::{MATRIX_KEYS, Model};
@@ -381,8 +381,9 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "n": n,
     });
     let out_name = args.out.display().to_string();
-    let mut writer =
+    let writer =
         EstimatesWriter::new(output, format, n, metadata).map_err(|e| Error::io(&out_name, e))?;
+    let mut writer = BackgroundWriter::new(writer, big_n * n, big_n * n * n);
 
     let mut filter: Box<dyn ChainFilter> = match args.filter {
         FilterKind::Distributed => two_step(&model, opts)?,
@@ -473,10 +474,18 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     if let Some(r) = &report {
         report_accuracy(r);
     }
-    clock.write(|| writer.commit(report.as_ref()))?;
+    let busy = clock.write(|| -> Result<f64> {
+        let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
+        writer.commit(report.as_ref())?;
+        Ok(busy)
+    })?;
     if args.timings {
         let rows = steps * big_n;
-        eprintln!("timings: {}", clock.summary(started.elapsed(), rows));
+        eprintln!(
+            "timings: {}; the writer thread was busy {:.3} s",
+            clock.summary(started.elapsed(), rows),
+            busy
+        );
     }
     Ok(())
 }

@@ -13,7 +13,7 @@ use sisfilt::config::ConfigSource;
 use sisfilt::filter::kernel::DynamicKernel;
 use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions};
 use sisfilt::interconnect::SolverKind;
-use sisfilt::io::estimates::{EstimatesWriter, Format};
+use sisfilt::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
 use sisfilt::io::{StepLayout, StepReader};
 use sisfilt::model::Model;
 
@@ -207,6 +207,23 @@ fn steps_after_the_first_allocate_nothing() {
                 assert_eq!(
                     count, 0,
                     "writer {format:?}, {threads} threads: {count} allocations"
+                );
+                let writer =
+                    EstimatesWriter::new(std::io::sink(), format, 2, serde_json::json!({}))
+                        .unwrap();
+                let mut background = BackgroundWriter::new(writer, x.len(), p.len());
+                background.write_step(1, &x, &p).unwrap();
+                let mut t = 1;
+                let count = allocations_in(|| {
+                    for _ in 0..2 {
+                        t += 1;
+                        background.write_step(t, &x, &p).unwrap();
+                    }
+                });
+                background.finish().unwrap();
+                assert_eq!(
+                    count, 0,
+                    "background writer {format:?}, {threads} threads: {count} allocations"
                 );
             }
         });
