@@ -14,6 +14,9 @@ pub struct BandLu {
     ku: usize,
     ab: Vec<f64>,
     ipiv: Vec<usize>,
+    /// `1 / U(j, j)`: the solves multiply instead of divide, which shortens the dependency
+    /// chain of the back substitution (a division's latency is several multiplications').
+    inv_pivot: Vec<f64>,
     /// `‖A‖₁`, recorded before factorisation.
     norm1: f64,
     /// First column with an exactly zero pivot, if any.
@@ -30,6 +33,7 @@ impl BandLu {
             ku,
             ab: vec![0.0; ld * n],
             ipiv: vec![0; n],
+            inv_pivot: vec![0.0; n],
             norm1: 0.0,
             zero_pivot: None,
         }
@@ -47,6 +51,25 @@ impl BandLu {
     #[inline]
     fn idx(&self, r: usize, c: usize) -> usize {
         c * self.ld() + self.kl + self.ku + r - c
+    }
+
+    /// `A(r, c)` (0-based) before factorisation; 0 outside the band.
+    pub fn get(&self, r: usize, c: usize) -> f64 {
+        if r > c + self.kl || c > r + self.ku {
+            return 0.0;
+        }
+        self.ab[self.idx(r, c)]
+    }
+
+    /// The diagonal block of rows and columns `start..end`, before factorisation.
+    pub fn block(&self, start: usize, end: usize) -> BandLu {
+        let mut out = BandLu::zeros(end - start, self.kl, self.ku);
+        for c in start..end {
+            for r in c.saturating_sub(self.ku).max(start)..(c + self.kl + 1).min(end) {
+                out.set(r - start, c - start, self.get(r, c));
+            }
+        }
+        out
     }
 
     /// Sets `A(r, c)` (0-based) before factorisation; `(r, c)` must lie in the band.
@@ -98,6 +121,7 @@ impl BandLu {
                 }
             }
             let pivot = self.ab[col];
+            self.inv_pivot[j] = 1.0 / pivot;
             for r in 1..=km {
                 self.ab[col + r] /= pivot;
             }
@@ -120,6 +144,97 @@ impl BandLu {
 
     /// Solves `A x = b` in place. Requires a factorised matrix without zero pivot.
     pub fn solve(&self, b: &mut [f64]) {
+        // The bandwidths of the chain systems with n⁺, n⁻ ≤ 2 get a solve that keeps the
+        // band of unknowns in registers.
+        match (self.kl, self.kl + self.ku) {
+            (2, 4) => self.solve_windowed::<2, 4>(b),
+            (1, 1) => self.solve_windowed::<1, 1>(b),
+            (0, 1) => self.solve_windowed::<0, 1>(b),
+            (1, 2) => self.solve_windowed::<1, 2>(b),
+            (4, 7) => self.solve_windowed::<4, 7>(b),
+            (3, 7) => self.solve_windowed::<3, 7>(b),
+            (5, 10) => self.solve_windowed::<5, 10>(b),
+            _ => self.solve_general(b),
+        }
+    }
+
+    /// [`BandLu::solve`] for `kl = KL`, `kl + ku = KV`: the rows of `b` still being
+    /// eliminated (forward) and the last solved unknowns (backward, as dot products) are
+    /// held in local arrays, so that no value makes a round trip through memory on the
+    /// dependency chain of the sweeps.
+    fn solve_windowed<const KL: usize, const KV: usize>(&self, b: &mut [f64]) {
+        let n = self.n;
+        if n <= KV + 1 {
+            return self.solve_general(b);
+        }
+        let (ld, kv) = (self.ld(), KV);
+        let at = |k: usize| if k < n { b[k] } else { 0.0 };
+        // Forward: L y = P b. `cur` is b[j], `pending[r]` b[j + 1 + r]; multipliers of rows
+        // past the end are zero (never set).
+        let mut cur = b[0];
+        let mut pending = [0.0; KL];
+        for (r, p) in pending.iter_mut().enumerate() {
+            *p = at(1 + r);
+        }
+        for j in 0..n {
+            let l = self.ipiv[j];
+            if l != j {
+                // Rare: swap through memory.
+                b[j] = cur;
+                for (r, &p) in pending.iter().enumerate() {
+                    if j + 1 + r < n {
+                        b[j + 1 + r] = p;
+                    }
+                }
+                b.swap(l, j);
+                cur = b[j];
+                for (r, p) in pending.iter_mut().enumerate() {
+                    *p = if j + 1 + r < n { b[j + 1 + r] } else { 0.0 };
+                }
+            }
+            b[j] = cur;
+            let col = j * ld + kv;
+            let multipliers = &self.ab[col + 1..col + 1 + KL];
+            for (p, m) in pending.iter_mut().zip(multipliers) {
+                *p -= m * cur;
+            }
+            if KL > 0 {
+                // Element by element (not copy_within), so that the array stays in registers.
+                cur = pending[0];
+                for r in 1..KL {
+                    pending[r - 1] = pending[r];
+                }
+                pending[KL - 1] = if j + 1 + KL < n { b[j + 1 + KL] } else { 0.0 };
+            } else if j + 1 < n {
+                cur = b[j + 1];
+            }
+        }
+        // Backward: U x = y, x[j] = (y[j] − Σ U(j, j+r) x[j+r]) / U(j, j); `solved[r]` is
+        // x[j + 1 + r]. U(j, j+r) lives at ab[(j+r)·ld + kv − r].
+        let mut solved = [0.0; KV];
+        for j in (0..n).rev() {
+            let mut acc = b[j];
+            if j + KV < n {
+                for r in (1..=KV).rev() {
+                    acc -= self.ab[(j + r) * ld + kv - r] * solved[r - 1];
+                }
+            } else {
+                for r in (1..=KV).rev() {
+                    if j + r < n {
+                        acc -= self.ab[(j + r) * ld + kv - r] * solved[r - 1];
+                    }
+                }
+            }
+            let x = acc * self.inv_pivot[j];
+            b[j] = x;
+            for r in (1..KV).rev() {
+                solved[r] = solved[r - 1];
+            }
+            solved[0] = x;
+        }
+    }
+
+    fn solve_general(&self, b: &mut [f64]) {
         let (n, kl, kv) = (self.n, self.kl, self.kl + self.ku);
         let ld = self.ld();
         for j in 0..n.saturating_sub(1) {
@@ -129,19 +244,22 @@ impl BandLu {
             }
             let bj = b[j];
             if bj != 0.0 {
-                let col = j * ld + kv;
-                for r in 1..=kl.min(n - 1 - j) {
-                    b[j + r] -= self.ab[col + r] * bj;
+                let (col, k) = (j * ld + kv, kl.min(n - 1 - j));
+                let multipliers = &self.ab[col + 1..col + 1 + k];
+                for (x, l) in b[j + 1..j + 1 + k].iter_mut().zip(multipliers) {
+                    *x -= l * bj;
                 }
             }
         }
         for j in (0..n).rev() {
             let col = j * ld + kv;
-            b[j] /= self.ab[col];
+            b[j] *= self.inv_pivot[j];
             let bj = b[j];
             if bj != 0.0 {
-                for r in j.saturating_sub(kv)..j {
-                    b[r] -= self.ab[col + r - j] * bj;
+                let first = j.saturating_sub(kv);
+                let column = &self.ab[col - (j - first)..col];
+                for (x, u) in b[first..j].iter_mut().zip(column) {
+                    *x -= u * bj;
                 }
             }
         }
@@ -157,7 +275,7 @@ impl BandLu {
             for r in j.saturating_sub(kv)..j {
                 s -= self.ab[col + r - j] * b[r];
             }
-            b[j] = s / self.ab[col];
+            b[j] = s * self.inv_pivot[j];
         }
         for j in (0..n.saturating_sub(1)).rev() {
             let col = j * ld + kv;
@@ -225,6 +343,165 @@ impl BandLu {
     }
 }
 
+/// A banded system solved as two diagonal blocks side by side (the SPIKE partition of Sameh
+/// and Polizzi). With `A = [[A₁, E₁], [F₂, A₂]]` split after row `m₁`, `E₁` couples the last
+/// `ku` rows of the first block to the first `ku` unknowns of the second and `F₂` the first
+/// `kl` rows of the second block to the last `kl` unknowns of the first. With the spikes
+/// `V = A₁⁻¹ E₁`, `W = A₂⁻¹ F₂` (computed once) and `g_k = A_k⁻¹ b_k` (the two solves run in
+/// parallel), `x₁ = g₁ − V x₂[..ku]` and `x₂ = g₂ − W x₁[m₁−kl..]`, whose rows at the seam
+/// form a reduced system of order `kl + ku`:
+///
+/// ```text
+/// [ I              V[m₁−kl.., ..] ] [ x₁[m₁−kl..] ]   [ g₁[m₁−kl..] ]
+/// [ W[..ku, ..]    I              ] [ x₂[..ku]    ] = [ g₂[..ku]    ]
+/// ```
+///
+/// It needs both blocks nonsingular, which a nonsingular `A` does not guarantee; the
+/// constructor refuses a split whose blocks or reduced system are ill-conditioned.
+#[derive(Debug, Clone)]
+pub struct SplitBandLu {
+    m1: usize,
+    kl: usize,
+    ku: usize,
+    first: BandLu,
+    second: BandLu,
+    /// `V` (`m₁ × ku`) and `W` (`m₂ × kl`), column-major.
+    v: Vec<f64>,
+    w: Vec<f64>,
+    reduced: BandLu,
+}
+
+impl SplitBandLu {
+    /// Splits the assembled (not yet factorised) `a` after row `m1`. `None` when a block or
+    /// the reduced system has a zero pivot or a condition estimate above `max_condition`.
+    pub fn new(a: &BandLu, m1: usize, max_condition: f64) -> Option<Self> {
+        let (n, kl, ku) = (a.n, a.kl, a.ku);
+        if kl + ku == 0 || m1 < kl.max(1) || n - m1 < ku.max(1) {
+            return None;
+        }
+        let well =
+            |lu: &BandLu| lu.zero_pivot().is_none() && lu.condition_estimate() <= max_condition;
+        let mut first = a.block(0, m1);
+        let mut second = a.block(m1, n);
+        first.factor();
+        second.factor();
+        if !well(&first) || !well(&second) {
+            return None;
+        }
+        let m2 = n - m1;
+        let mut v = vec![0.0; m1 * ku];
+        for (c, col) in v.chunks_exact_mut(m1).enumerate() {
+            for r in m1.saturating_sub(ku)..m1 {
+                col[r] = a.get(r, m1 + c);
+            }
+            first.solve(col);
+        }
+        let mut w = vec![0.0; m2 * kl];
+        for (c, col) in w.chunks_exact_mut(m2).enumerate() {
+            for r in 0..kl.min(m2) {
+                col[r] = a.get(m1 + r, m1 - kl + c);
+            }
+            second.solve(col);
+        }
+        let k = kl + ku;
+        let mut reduced = BandLu::zeros(k, k - 1, k - 1);
+        for r in 0..kl {
+            reduced.set(r, r, 1.0);
+            for c in 0..ku {
+                reduced.set(r, kl + c, v[c * m1 + m1 - kl + r]);
+            }
+        }
+        for r in 0..ku {
+            for c in 0..kl {
+                reduced.set(kl + r, c, w[c * m2 + r]);
+            }
+            reduced.set(kl + r, kl + r, 1.0);
+        }
+        reduced.factor();
+        if !well(&reduced) {
+            return None;
+        }
+        Some(Self {
+            m1,
+            kl,
+            ku,
+            first,
+            second,
+            v,
+            w,
+            reduced,
+        })
+    }
+
+    /// Order of the matrix.
+    pub fn n(&self) -> usize {
+        self.m1 + self.second.n
+    }
+
+    /// Order of the first block.
+    pub fn first_rows(&self) -> usize {
+        self.m1
+    }
+
+    /// Solves `A x = b` in place, the two blocks in parallel (rayon); `seam` is scratch of
+    /// `kl + ku` values. The result does not depend on the thread count.
+    pub fn solve(&self, b: &mut [f64], seam: &mut [f64]) {
+        self.solve_with(b, seam, |_, _| {}, |_| {}, |_| {});
+    }
+
+    /// [`SplitBandLu::solve`], with the right-hand side filled in place by
+    /// `fill(first_row, rows)` and the solution read by `take_first` and `take_second`, each
+    /// on the thread that solves its block (so that moving data in and out runs in parallel
+    /// too).
+    pub fn solve_with(
+        &self,
+        b: &mut [f64],
+        seam: &mut [f64],
+        fill: impl Fn(usize, &mut [f64]) + Sync,
+        take_first: impl FnOnce(&[f64]) + Send,
+        take_second: impl FnOnce(&[f64]) + Send,
+    ) {
+        let (m1, kl, ku) = (self.m1, self.kl, self.ku);
+        let (b1, b2) = b.split_at_mut(m1);
+        rayon::join(
+            || {
+                fill(0, b1);
+                self.first.solve(b1)
+            },
+            || {
+                fill(m1, b2);
+                self.second.solve(b2)
+            },
+        );
+        let seam = &mut seam[..kl + ku];
+        seam[..kl].copy_from_slice(&b1[m1 - kl..]);
+        seam[kl..].copy_from_slice(&b2[..ku]);
+        self.reduced.solve(seam);
+        let (x1_end, x2_start) = seam.split_at(kl);
+        rayon::join(
+            || {
+                subtract_spikes(b1, &self.v, x2_start);
+                take_first(b1)
+            },
+            || {
+                subtract_spikes(b2, &self.w, x1_end);
+                take_second(b2)
+            },
+        );
+    }
+}
+
+/// `x −= S c` for the column-major spikes `S` (`x.len() × c.len()`).
+fn subtract_spikes(x: &mut [f64], spikes: &[f64], c: &[f64]) {
+    for (col, &a) in spikes.chunks_exact(x.len()).zip(c) {
+        if a != 0.0 {
+            for (xi, s) in x.iter_mut().zip(col) {
+                *xi -= s * a;
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -248,7 +525,23 @@ mod tests {
 
     #[test]
     fn solves_match_dense_lu() {
-        for (n, kl, ku) in [(1, 0, 0), (5, 1, 2), (30, 3, 1), (40, 4, 4), (7, 6, 6)] {
+        // Includes every bandwidth with a windowed solve, on long and on short matrices.
+        for (n, kl, ku) in [
+            (1, 0, 0),
+            (5, 1, 2),
+            (30, 3, 1),
+            (40, 4, 4),
+            (7, 6, 6),
+            (50, 2, 2),
+            (4, 2, 2),
+            (6, 2, 2),
+            (20, 1, 0),
+            (20, 0, 1),
+            (20, 1, 1),
+            (30, 4, 3),
+            (30, 3, 4),
+            (40, 5, 5),
+        ] {
             let (mut lu, dense) = random_band(n, kl, ku, n as u64);
             lu.factor();
             assert!(lu.zero_pivot().is_none());
@@ -264,6 +557,56 @@ mod tests {
                 assert!((xt[k] - exact_t[k]).abs() <= 1e-9 * exact_t.amax().max(1.0));
             }
         }
+    }
+
+    /// The split solve against a dense LU solve, for several band shapes and split points,
+    /// with one and two threads (the same bits).
+    #[test]
+    fn split_solves_match_dense_lu() {
+        for (n, kl, ku, m1) in [
+            (40, 2, 2, 20),
+            (41, 3, 1, 7),
+            (30, 1, 3, 26),
+            (50, 2, 0, 25),
+        ] {
+            let (mut lu, mut dense) = random_band(n, kl, ku, 3 + n as u64);
+            // A dominant diagonal keeps both blocks nonsingular.
+            for k in 0..n {
+                let v = lu.get(k, k) + 4.0;
+                lu.set(k, k, v);
+                dense[(k, k)] = v;
+            }
+            let split = SplitBandLu::new(&lu, m1, 1e12).expect("well-conditioned split");
+            assert_eq!(split.n(), n);
+            let b = DVector::from_fn(n, |i, _| (i as f64 * 0.7 + 1.0).sin());
+            let exact = dense.lu().solve(&b).unwrap();
+            let solve = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let mut x = b.as_slice().to_vec();
+                pool.install(|| split.solve(&mut x, &mut [0.0; 8]));
+                x
+            };
+            let (one, two) = (solve(1), solve(2));
+            for k in 0..n {
+                assert!(
+                    (one[k] - exact[k]).abs() <= 1e-13 * exact.amax(),
+                    "{n} {kl} {ku}"
+                );
+                assert_eq!(one[k].to_bits(), two[k].to_bits());
+            }
+        }
+    }
+
+    /// `[[0, 1], [1, 0]]` is nonsingular, but its diagonal blocks are zero.
+    #[test]
+    fn split_with_singular_block_is_refused() {
+        let mut lu = BandLu::zeros(2, 1, 1);
+        lu.set(0, 1, 1.0);
+        lu.set(1, 0, 1.0);
+        assert!(SplitBandLu::new(&lu, 1, 1e12).is_none());
     }
 
     #[test]

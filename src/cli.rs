@@ -272,7 +272,8 @@ pub struct EstimateArgs {
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
     /// Print on standard error the wall-clock time spent reading the input files, filtering
-    /// and writing the estimates (a `timings:` line).
+    /// and handing the estimates to the writer thread, and the time that thread spent
+    /// formatting and writing them (a `timings:` line).
     #[arg(long)]
     pub timings: bool,
 }

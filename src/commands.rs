@@ -21,7 +21,7 @@ use crate::filter::{
 };
 use crate::inputs::{InputStream, open_csv};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
-use crate::io::estimates::{EstimatesWriter, Format};
+use crate::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
 use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
 use crate::lifted::{a_eff_band, spectral_radius};
 use crate::messages::{Verbosity, info, verbosity};
@@ -56,7 +56,9 @@ pub fn run(command: Command) -> Result<()> {
     match command {
         Command::Check { config } => check(&config),
         Command::Simulate(args) => simulate_command(&args),
-        Command::Estimate(args) => estimate(&args),
+        // On a worker of rayon's pool, so that the parallel loops of every step (filter,
+        // writer, readers) start without waking the pool from outside each time.
+        Command::Estimate(args) => rayon::scope(|_| estimate(&args)),
         Command::Evaluate(args) => evaluate_command(&args),
         Command::Plot(PlotCommand::Series(args)) => crate::plot::series::run(&args),
         Command::Plot(PlotCommand::Heatmap(args)) => crate::plot::heatmap::run(&args),
@@ -542,8 +544,14 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         _ => two_step(&model, opts)?,
     };
     let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
-    let mut writer = EstimatesWriter::new(output, format, n, cross, metadata)
+    let writer = EstimatesWriter::new(output, format, n, cross, metadata)
         .map_err(|e| Error::io(&out_name, e))?;
+    let mut writer = BackgroundWriter::new(
+        writer,
+        big_n * n,
+        big_n * n * n,
+        (cross > 0).then_some((big_n, n, cross)),
+    );
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * d.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
@@ -631,10 +639,18 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     if let Some(r) = &report {
         report_accuracy(r);
     }
-    clock.write(|| writer.commit(report.as_ref()))?;
+    let busy = clock.write(|| -> Result<f64> {
+        let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
+        writer.commit(report.as_ref())?;
+        Ok(busy)
+    })?;
     if args.timings {
         let rows = steps * big_n;
-        eprintln!("timings: {}", clock.summary(started.elapsed(), rows));
+        eprintln!(
+            "timings: {}; the writer thread was busy {:.3} s",
+            clock.summary(started.elapsed(), rows),
+            busy
+        );
     }
     Ok(())
 }

@@ -3,13 +3,24 @@
 //! `ku = s − 1 + n⁻` super-diagonals (`s = n⁺ + n⁻`), factorised by [`BandLu`] in `O(N s³)`
 //! once per change of `G` and solved in `O(N s²)` per time step. It needs no block of `G`
 //! to be invertible and is as well conditioned as the problem.
+//!
+//! Long chains (at least [`SPLIT_MIN_LINKS`] links) solve it in two halves side by side
+//! ([`SplitBandLu`]), so that step 1 scales with the threads like step 2; the split depends
+//! only on the chain, never on the thread count, so neither do the results. A split whose
+//! halves are ill-conditioned is not used (the whole system is solved at once).
 
-use crate::band_lu::BandLu;
+use crate::band_lu::{BandLu, SplitBandLu};
 use crate::error::{Error, Result};
 use crate::model::Model;
 
 /// Largest 1-norm condition estimate of a well-posed interconnection system (SPEC §2).
 pub const MAX_CONDITION: f64 = 1e15;
+
+/// Chains with at least this many links solve step 1 in two halves in parallel.
+pub const SPLIT_MIN_LINKS: usize = 4096;
+/// Largest condition estimate of a half, or of the reduced system at the seam, for which the
+/// split solve is used.
+const SPLIT_MAX_CONDITION: f64 = 1e8;
 
 /// The factorised interconnection system at some time, reused while `G` does not change.
 #[derive(Debug, Clone)]
@@ -18,6 +29,8 @@ pub struct ChainSolver {
     minus: usize,
     subsystems: usize,
     lu: BandLu,
+    /// The same system split in two halves, on long chains.
+    split: Option<Box<SplitBandLu>>,
     /// Every subsystem's `G` (column-major, concatenated) that `lu` was built from.
     g_built: Vec<f64>,
     /// The window the factors were last checked against.
@@ -36,6 +49,7 @@ impl ChainSolver {
             minus: d.minus,
             subsystems: model.subsystems,
             lu: BandLu::zeros(0, 0, 0),
+            split: None,
             g_built: Vec::new(),
             window: model.window_index(t),
             condition: 1.0,
@@ -107,6 +121,11 @@ impl ChainSolver {
                 }
             }
         }
+        let split = if links >= SPLIT_MIN_LINKS {
+            SplitBandLu::new(&lu, links / 2 * s, SPLIT_MAX_CONDITION).map(Box::new)
+        } else {
+            None
+        };
         lu.factor();
         if let Some(col) = lu.zero_pivot() {
             let link = col / s + 1;
@@ -130,6 +149,7 @@ impl ChainSolver {
             });
         }
         self.lu = lu;
+        self.split = split;
         self.g_built = g_now;
         self.condition = condition;
         Ok(())
@@ -143,26 +163,59 @@ impl ChainSolver {
     /// Solves (P2)–(P4): given `z` (`N · s` values, `z(i) = [z⁺(i); z⁻(i)]` for each `i`),
     /// writes `v` (`N · s` values, `v(i) = [v⁺(i); v⁻(i)]`). `rhs` is scratch of any length
     /// (resized once; no allocation afterwards).
+    // Blocks of one or two numbers: loops beat memcpy calls.
+    #[allow(clippy::manual_memcpy)]
     pub fn solve(&self, z: &[f64], v: &mut [f64], rhs: &mut Vec<f64>) {
         let (p, m) = (self.plus, self.minus);
         let s = p + m;
-        v.iter_mut().for_each(|x| *x = 0.0);
         let links = self.subsystems - 1;
         if links == 0 || s == 0 {
+            v.fill(0.0);
             return;
         }
-        rhs.resize(links * s, 0.0);
-        for i in 1..=links {
-            let base = (i - 1) * s;
-            rhs[base..base + p].copy_from_slice(&z[base..base + p]);
-            rhs[base + p..base + s].copy_from_slice(&z[i * s + p..i * s + s]);
-        }
-        self.lu.solve(rhs);
-        for i in 1..=links {
-            let base = (i - 1) * s;
-            // a(i) = v⁺(i+1); b(i) = v⁻(i).
-            v[i * s..i * s + p].copy_from_slice(&rhs[base..base + p]);
-            v[base + p..base + s].copy_from_slice(&rhs[base + p..base + s]);
+        let order = links * s;
+        rhs.resize(order + 3 * s, 0.0); // and the split solve's seam, kl + ku = 3s − 2
+        // Link j (0-based) holds [a(j); b(j)] = [z⁺(j); z⁻(j+1)] on the right and
+        // [v⁺(j+1); v⁻(j)] in the solution, so links first..last read z and write v over
+        // contiguous ranges, and the two halves of a split solve move their data in parallel.
+        let fill = |first_row: usize, part: &mut [f64]| {
+            let first = first_row / s;
+            for (jj, row) in part.chunks_exact_mut(s).enumerate() {
+                let base = (first + jj) * s;
+                for k in 0..p {
+                    row[k] = z[base + k];
+                }
+                for k in p..s {
+                    row[k] = z[base + s + k];
+                }
+            }
+        };
+        // `out` starts at v[first·s + p].
+        let take = |part: &[f64], out: &mut [f64]| {
+            for (row, o) in part.chunks_exact(s).zip(out.chunks_exact_mut(s)) {
+                for k in p..s {
+                    o[k - p] = row[k];
+                }
+                for k in 0..p {
+                    o[m + k] = row[k];
+                }
+            }
+        };
+        // v⁺(1) = 0 and v⁻(N) = 0 (P4).
+        v[..p].fill(0.0);
+        v[order + p..].fill(0.0);
+        let (rhs, seam) = rhs.split_at_mut(order);
+        let out = &mut v[p..order + p];
+        match &self.split {
+            Some(split) => {
+                let (out1, out2) = out.split_at_mut(split.first_rows());
+                split.solve_with(rhs, seam, fill, |x| take(x, out1), |x| take(x, out2));
+            }
+            None => {
+                fill(0, rhs);
+                self.lu.solve(rhs);
+                take(rhs, out);
+            }
         }
     }
 }
@@ -246,6 +299,27 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// A chain long enough for the split solve: equal to the unsplit banded solve.
+    #[test]
+    fn split_solve_equals_whole_solve() {
+        let n_sub = SPLIT_MIN_LINKS + 7;
+        let model = random_model(n_sub, 1, 2, 77, false, 0.0);
+        let solver = ChainSolver::new(&model, 1).unwrap();
+        assert!(solver.split.is_some());
+        let s = 3;
+        let z: Vec<f64> = (0..n_sub * s).map(|k| (k as f64 * 0.37).sin()).collect();
+        let (mut v, mut rhs) = (vec![0.0; n_sub * s], Vec::new());
+        solver.solve(&z, &mut v, &mut rhs);
+        let mut whole = solver.clone();
+        whole.split = None;
+        let mut v_whole = vec![0.0; n_sub * s];
+        whole.solve(&z, &mut v_whole, &mut rhs);
+        let scale = v_whole.iter().fold(0.0f64, |a, b| a.max(b.abs()));
+        for k in 0..v.len() {
+            assert!((v[k] - v_whole[k]).abs() <= 1e-13 * scale, "{k}");
         }
     }
 

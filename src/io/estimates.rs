@@ -211,6 +211,131 @@ impl EstimatesWriter<Output> {
     }
 }
 
+/// One time step handed to the writer thread.
+struct StepRows {
+    t: usize,
+    x: Vec<f64>,
+    p: Vec<f64>,
+    /// The covariance band, for a writer with cross-covariance columns.
+    band: Option<SymBand>,
+}
+
+/// An [`EstimatesWriter`] on a thread of its own, one step behind the caller: formatting and
+/// the `write` system calls of step `t` overlap the reading and filtering of step `t + 1`.
+/// Two step buffers go back and forth through bounded channels, so a step allocates nothing.
+pub struct BackgroundWriter<W: Write + Send + 'static = Output> {
+    to_writer: Option<std::sync::mpsc::SyncSender<StepRows>>,
+    free: std::sync::mpsc::Receiver<StepRows>,
+    thread: Option<std::thread::JoinHandle<std::io::Result<EstimatesWriter<W>>>>,
+    /// Time the writer thread spent formatting and writing (not waiting).
+    busy: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl<W: Write + Send + 'static> BackgroundWriter<W> {
+    /// Starts the thread; steps have `values_x` and `values_p` numbers (`N·n`, `N·n²`), and a
+    /// covariance band of shape `(N, n, width)` when `band` is given.
+    pub fn new(
+        mut writer: EstimatesWriter<W>,
+        values_x: usize,
+        values_p: usize,
+        band: Option<(usize, usize, usize)>,
+    ) -> Self {
+        use std::sync::atomic::Ordering;
+        let (to_writer, from_caller) = std::sync::mpsc::sync_channel::<StepRows>(2);
+        let (to_caller, free) = std::sync::mpsc::sync_channel::<StepRows>(2);
+        for _ in 0..2 {
+            let rows = StepRows {
+                t: 0,
+                x: vec![0.0; values_x],
+                p: vec![0.0; values_p],
+                band: band.map(|(nb, bs, w)| SymBand::zeros(nb, bs, w)),
+            };
+            to_caller.send(rows).expect("the channel has room");
+        }
+        let busy = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let busy_thread = busy.clone();
+        let thread = std::thread::Builder::new()
+            .name("sisfilt-writer".into())
+            .spawn(move || {
+                for rows in from_caller {
+                    let start = std::time::Instant::now();
+                    writer.write_step(rows.t, &rows.x, &rows.p, rows.band.as_ref())?;
+                    busy_thread.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                    // The caller may be gone (an error on its side): nothing to give back.
+                    let _ = to_caller.send(rows);
+                }
+                Ok(writer)
+            })
+            .expect("the writer thread starts");
+        Self {
+            to_writer: Some(to_writer),
+            free,
+            thread: Some(thread),
+            busy,
+        }
+    }
+
+    /// Hands the rows `(t, 1..N)` to the writer thread (see [`EstimatesWriter::write_step`]);
+    /// waits while it is two steps behind. An error of the thread is returned here.
+    pub fn write_step(
+        &mut self,
+        t: usize,
+        x: &[f64],
+        p: &[f64],
+        band: Option<&SymBand>,
+    ) -> std::io::Result<()> {
+        let Ok(mut rows) = self.free.recv() else {
+            return Err(self.thread_error());
+        };
+        rows.t = t;
+        rows.x.copy_from_slice(x);
+        rows.p.copy_from_slice(p);
+        if let (Some(dst), Some(src)) = (rows.band.as_mut(), band) {
+            dst.copy_band_from(src);
+        }
+        let sent = self.to_writer.as_ref().map(|w| w.send(rows));
+        match sent {
+            Some(Ok(())) => Ok(()),
+            _ => Err(self.thread_error()),
+        }
+    }
+
+    /// Waits for the thread and returns its error (it stopped early).
+    fn thread_error(&mut self) -> std::io::Error {
+        self.to_writer = None;
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(Err(e))) => e,
+            _ => std::io::Error::other("the writer thread stopped"),
+        }
+    }
+
+    /// Seconds the writer thread spent formatting and writing.
+    pub fn busy_seconds(&self) -> f64 {
+        self.busy.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
+    }
+
+    /// Waits until every step is written; returns the writer and the seconds the thread
+    /// spent formatting and writing.
+    pub fn finish(mut self) -> std::io::Result<(EstimatesWriter<W>, f64)> {
+        self.to_writer = None;
+        let writer = match self.thread.take().expect("finish once").join() {
+            Ok(result) => result?,
+            Err(_) => return Err(std::io::Error::other("the writer thread panicked")),
+        };
+        Ok((writer, self.busy_seconds()))
+    }
+}
+
+impl<W: Write + Send + 'static> Drop for BackgroundWriter<W> {
+    /// On an error path: lets the thread end, so that its output is dropped uncommitted.
+    fn drop(&mut self) {
+        self.to_writer = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

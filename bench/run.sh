@@ -1,0 +1,193 @@
+#!/usr/bin/env bash
+# Reproduces every figure of BENCHMARKS.md (issue 5) and rewrites that file:
+#   - builds sisfilt in release mode;
+#   - generates workload W (bench/workload.toml, N = 10⁴, T = 10³) with `sisfilt simulate`
+#     and runs the whole CLI on it under /usr/bin/time -v, with one thread and with all
+#     cores (RAYON_NUM_THREADS), reporting the read / filter / write split (`--timings`);
+#   - peak RSS at T = 10² and T = 10⁴ (N = 10³), the scaling in N (10² … 10⁵, one thread,
+#     fitted exponent), centralized against distributed time per step (N = 10, 30, 100, 300);
+#   - the numpy baseline (bench/baseline.py) against `sisfilt estimate` on a workload it
+#     finishes in about a minute, with both outputs compared number by number;
+#   - a `perf` profile of the remaining hot spots, when perf is installed.
+# Every case runs BENCH_RUNS times (default 3) and the medians are reported.
+#
+# Usage: bench/run.sh            (about 5 minutes on a quiet 2-core machine, plus the build)
+# Environment: BENCH_RUNS (3), BENCH_WORK (target/bench), BENCH_OUT (BENCHMARKS.md),
+#   BENCH_BASELINE_STEPS (6000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
+#   list its results, BENCH_KEEP=1 to keep the generated data.
+# Needs: cargo, python3 ≥ 3.11; installs GNU time (apt-get, as root) and numpy (in a venv
+# under BENCH_WORK, from PyPI) when they are missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+WORK=${BENCH_WORK:-$ROOT/target/bench}
+RUNS=${BENCH_RUNS:-3}
+OUT=${BENCH_OUT:-$ROOT/BENCHMARKS.md}
+BASELINE_N=100
+BASELINE_T=${BENCH_BASELINE_STEPS:-6000}
+THREADS=$(nproc)
+RESULTS=$WORK/results.jsonl
+log() { echo "[bench $(date +%H:%M:%S)] $*" >&2; }
+
+# --- tools -------------------------------------------------------------------------------
+if [ ! -c /dev/null ]; then
+    echo "error: /dev/null is not a character device (something replaced it with a file);" \
+        "restore it first: rm /dev/null && mknod -m 666 /dev/null c 1 3" >&2
+    exit 1
+fi
+if [ ! -x /usr/bin/time ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        log "installing GNU time"
+        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq time >/dev/null
+    else
+        echo "error: /usr/bin/time (GNU time) is missing; install the package 'time'" >&2
+        exit 1
+    fi
+fi
+python3 -c 'import sys, tomllib; assert sys.version_info >= (3, 11)' 2>/dev/null || {
+    echo "error: python3 ≥ 3.11 is needed (bench/baseline.py reads TOML with tomllib)" >&2
+    exit 1
+}
+mkdir -p "$WORK"
+VENV=$WORK/venv
+if ! "$VENV/bin/python" -c 'import numpy' 2>/dev/null; then
+    log "creating a Python venv with numpy in $VENV"
+    python3 -m venv "$VENV"
+    "$VENV/bin/pip" install -q numpy
+fi
+PY=$VENV/bin/python
+
+log "building (release)"
+cargo build --release --locked -q
+BIN=$ROOT/target/release/sisfilt
+
+: >"$RESULTS"
+python3 - "$WORK/env.json" "$RUNS" "$THREADS" "$BASELINE_N" "$BASELINE_T" \
+    "$(cut -d' ' -f1-3 /proc/loadavg)" "$(rustc --version)" \
+    "$(git rev-parse --short HEAD 2>/dev/null || echo unknown)$(git diff --quiet 2>/dev/null || echo '+changes')" <<'EOF'
+import json, sys
+path, runs, threads, bn, bt, load, rustc, commit = sys.argv[1:]
+json.dump(dict(runs=int(runs), threads=int(threads), baseline_n=int(bn), baseline_t=int(bt),
+               loadavg=load, rustc=rustc, commit=commit), open(path, "w"))
+EOF
+
+# A config: workload W with N and T replaced. usage: config N T NAME -> $WORK/NAME.toml
+config() {
+    sed -e "s/^subsystems = .*/subsystems = $1/" -e "s/^steps = .*/steps = $2/" \
+        bench/workload.toml >"$WORK/$3.toml"
+}
+# Simulated data of a config. usage: data N T NAME -> $WORK/NAME/
+data() {
+    config "$1" "$2" "$3"
+    rm -rf "${WORK:?}/$3"
+    "$BIN" simulate "$WORK/$3.toml" --out "$WORK/$3" 2>/dev/null
+}
+# Runs `sisfilt ARGS…` BENCH_RUNS times under /usr/bin/time -v and records each run.
+# usage: measure NAME THREADS ARGS…
+measure() {
+    local name=$1 threads=$2
+    shift 2
+    for _ in $(seq "$RUNS"); do
+        RAYON_NUM_THREADS=$threads /usr/bin/time -v -o "$WORK/time.txt" "$BIN" "$@" \
+            >/dev/null 2>"$WORK/stderr.txt" || {
+            cat "$WORK/stderr.txt" >&2
+            exit 1
+        }
+        python3 bench/report.py record "$RESULTS" "$name" "$threads" "$WORK/time.txt" "$WORK/stderr.txt"
+    done
+}
+
+# --- workload W --------------------------------------------------------------------------
+log "workload W: simulate N = 10000, T = 1000"
+data 10000 1000 W
+for threads in 1 "$THREADS"; do
+    suffix=$([ "$threads" = 1 ] && echo 1thread || echo "${threads}threads")
+    log "workload W: estimate, $threads thread(s)"
+    measure "W-$suffix" "$threads" estimate --meas "$WORK/W/measurements.csv" \
+        --out "$WORK/W/estimates.csv" --timings
+done
+rm -f "$WORK/W/estimates.csv" "$WORK/W/truth.csv"
+
+# --- peak memory against T ---------------------------------------------------------------
+for steps in 100 10000; do
+    log "memory: N = 1000, T = $steps"
+    data 1000 "$steps" "mem$steps"
+    measure "mem-T$steps" "$THREADS" estimate --meas "$WORK/mem$steps/measurements.csv" \
+        --out "$WORK/mem$steps/estimates.csv" --timings
+    rm -rf "${WORK:?}/mem$steps"
+done
+
+# --- scaling in N ------------------------------------------------------------------------
+for n_sub in 100 1000 10000 100000; do
+    steps=$((1000000 / n_sub))
+    [ "$steps" -lt 20 ] && steps=20
+    log "scaling: N = $n_sub, T = $steps"
+    data "$n_sub" "$steps" "scale$n_sub"
+    measure "scale-N$n_sub" 1 estimate --meas "$WORK/scale$n_sub/measurements.csv" \
+        --out /dev/null --timings
+    rm -rf "${WORK:?}/scale$n_sub"
+done
+
+# --- centralized against distributed -----------------------------------------------------
+for n_sub in 10 30 100 300; do
+    case $n_sub in
+    10) central_steps=500 ;;
+    30) central_steps=100 ;;
+    100) central_steps=10 ;;
+    *) central_steps=3 ;;
+    esac
+    log "centralized vs distributed: N = $n_sub"
+    data "$n_sub" 2000 "cvd$n_sub"
+    measure "cvd-distributed-N$n_sub" "$THREADS" estimate \
+        --meas "$WORK/cvd$n_sub/measurements.csv" --out /dev/null --timings
+    data "$n_sub" "$central_steps" "cvdc$n_sub"
+    measure "cvd-centralized-N$n_sub" "$THREADS" estimate --filter centralized \
+        --meas "$WORK/cvdc$n_sub/measurements.csv" --out /dev/null --timings
+    rm -rf "${WORK:?}/cvd$n_sub" "${WORK:?}/cvdc$n_sub"
+done
+
+# --- numpy baseline ----------------------------------------------------------------------
+log "baseline: N = $BASELINE_N, T = $BASELINE_T"
+data "$BASELINE_N" "$BASELINE_T" base
+B=$WORK/base
+measure baseline-sisfilt "$THREADS" estimate --meas "$B/measurements.csv" --out "$B/sisfilt.csv"
+log "baseline: numpy (one run; about a minute)"
+/usr/bin/time -v -o "$WORK/time.txt" "$PY" bench/baseline.py "$B.toml" "$B/measurements.csv" \
+    "$B/inputs.csv" "$B/numpy.csv" 2>"$WORK/stderr.txt"
+python3 bench/report.py record "$RESULTS" baseline-python 1 "$WORK/time.txt" "$WORK/stderr.txt"
+agreement=$("$PY" bench/report.py compare "$B/sisfilt.csv" "$B/numpy.csv")
+python3 - "$WORK/env.json" "$agreement" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1])); env["baseline_compare"] = json.loads(sys.argv[2])
+json.dump(env, open(sys.argv[1], "w"))
+EOF
+rm -rf "${WORK:?}/base"
+
+# --- profile -----------------------------------------------------------------------------
+if command -v perf >/dev/null && perf record -o /dev/null true >/dev/null 2>&1; then
+    log "profile: perf record, W with one thread"
+    data 10000 200 prof
+    RAYON_NUM_THREADS=1 perf record -q -o "$WORK/perf.data" "$BIN" estimate \
+        --meas "$WORK/prof/measurements.csv" --out "$WORK/prof/estimates.csv" 2>/dev/null
+    perf report -i "$WORK/perf.data" --no-children --percent-limit 1.5 --stdio 2>/dev/null |
+        grep -E '^ +[0-9]' | sed -E 's/ +\[\.\] / /; s/^ +//' | cut -c1-110 | head -25 >"$WORK/profile.txt"
+    rm -rf "${WORK:?}/prof" "$WORK/perf.data"
+else
+    log "profile: perf is not available, skipped"
+    rm -f "$WORK/profile.txt"
+fi
+
+# --- criterion (optional) ----------------------------------------------------------------
+if [ "${BENCH_CRITERION:-0}" = 1 ]; then
+    log "criterion: cargo bench --bench filter"
+    cargo bench --locked --bench filter -q >/dev/null
+    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1])); env["criterion"] = json.loads(sys.argv[2])
+json.dump(env, open(sys.argv[1], "w"))
+EOF
+fi
+
+[ "${BENCH_KEEP:-0}" = 1 ] || rm -rf "${WORK:?}/W"
+python3 bench/report.py write "$RESULTS" "$OUT"
+log "wrote $OUT"
