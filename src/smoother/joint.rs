@@ -19,10 +19,8 @@
 
 use std::sync::Arc;
 
-use nalgebra::DMatrix;
-
 use crate::band::{
-    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision, gemm_acc,
     gen_t_times_gen, sym_times_gen,
 };
 use crate::error::{Error, Result};
@@ -92,28 +90,28 @@ impl Smoother for JointSmoother<'_> {
         xs[steps - 1] = self.x_filt[steps - 1].clone();
         bands[steps - 1] = cov;
         let mut lam_s = self.posterior[steps - 1].clone();
-        let mut ws = Backward::new(model);
+        let mut ws = Backward::new(model, k);
         for idx in (0..steps - 1).rev() {
             let t = idx + 1;
-            let (x, band) = ws
-                .step(
-                    model,
-                    t,
-                    &self.a_eff[idx],
-                    &self.posterior[idx],
-                    &self.prior[idx + 1],
-                    &lam_s,
-                    &self.x_filt[idx],
-                    &self.x_pred[idx + 1],
-                    &xs[idx + 1],
-                )
+            let mut x = vec![0.0; big_n * n];
+            let mut band = SymBand::zeros(big_n, n, k);
+            ws.step(
+                model,
+                t,
+                &self.a_eff[idx],
+                &self.posterior[idx],
+                &self.prior[idx + 1],
+                &lam_s,
+                &self.x_filt[idx],
+                &self.x_pred[idx + 1],
+                &xs[idx + 1],
+                &mut x,
+                &mut band,
+            )
+            .map_err(|e| smoother_error(t, loading, k, e))?;
+            ws.smoothed_precision(&band, loading, &mut lam_s)
                 .map_err(|e| smoother_error(t, loading, k, e))?;
             xs[idx] = x;
-            let mut loaded = band.clone();
-            load_diagonal(&mut loaded, loading);
-            let mut completion = CompletionWorkspace::new(big_n, n, k);
-            completion_precision(&loaded, k, &mut lam_s, &mut completion)
-                .map_err(|e| smoother_error(t, loading, k, e))?;
             bands[idx] = band;
         }
         let p = bands
@@ -164,20 +162,72 @@ fn smoother_error(t: usize, loading: f64, k: usize, e: BandError) -> Error {
     }
 }
 
-/// Scratch of the backward pass and the square roots `G_i` of `Q_i` per parameter set.
+/// Scratch of the backward pass, sized for the current `A_eff` half-width `b` (resized only
+/// when `b` changes), and the square roots `G_i` of `Q_i` per parameter set (column-major).
 struct Backward {
-    roots: Vec<DMatrix<f64>>,
+    roots: Vec<Vec<f64>>,
+    /// The `b` the buffers below are sized for.
+    b: Option<usize>,
+    ib: SymBand,
+    w: GenBand,
+    m: SymBand,
+    jm: SymBand,
+    chol: BandCholesky,
+    inv: SymBand,
+    loaded: SymBand,
+    completion: CompletionWorkspace,
+    e: Vec<f64>,
+    v: Vec<f64>,
+    atv: Vec<f64>,
+    rhs: Vec<f64>,
+    /// Two `n × n` scratch blocks.
+    tmp: Vec<f64>,
+    tmp2: Vec<f64>,
 }
 
 impl Backward {
-    fn new(model: &Model) -> Self {
+    fn new(model: &Model, k: usize) -> Self {
+        let (n, big_n) = (model.dims.n, model.subsystems);
         Self {
-            roots: model.param_sets().iter().map(|p| psd_sqrt(&p.Q)).collect(),
+            roots: model
+                .param_sets()
+                .iter()
+                .map(|p| psd_sqrt(&p.Q).as_slice().to_vec())
+                .collect(),
+            b: None,
+            ib: SymBand::zeros(big_n, n, k),
+            w: GenBand::zeros(big_n, n, 0),
+            m: SymBand::zeros(big_n, n, 0),
+            jm: SymBand::zeros(big_n, 2 * n, 0),
+            chol: BandCholesky::new(big_n, 2 * n, 0),
+            inv: SymBand::zeros(big_n, 2 * n, 0),
+            loaded: SymBand::zeros(big_n, n, k),
+            completion: CompletionWorkspace::new(big_n, n, k),
+            e: vec![0.0; big_n * n],
+            v: vec![0.0; big_n * n],
+            atv: vec![0.0; big_n * n],
+            rhs: vec![0.0; big_n * 2 * n],
+            tmp: vec![0.0; n * n],
+            tmp2: vec![0.0; n * n],
         }
     }
 
-    /// One backward step at time `t` (SPEC §10 `joint` steps 1–5): `x̂(t|T)` and the band `k`
-    /// of `P(t|T)`.
+    /// Sizes the buffers for `A_eff` half-width `b`.
+    fn prepare(&mut self, nb: usize, n: usize, k: usize, b: usize) {
+        if self.b == Some(b) {
+            return;
+        }
+        let kappa = (k + 2 * b).min(nb - 1);
+        self.w = GenBand::zeros(nb, n, k + b);
+        self.m = SymBand::zeros(nb, n, kappa);
+        self.jm = SymBand::zeros(nb, 2 * n, kappa);
+        self.chol = BandCholesky::new(nb, 2 * n, kappa);
+        self.inv = SymBand::zeros(nb, 2 * n, kappa);
+        self.b = Some(b);
+    }
+
+    /// One backward step at time `t` (SPEC §10 `joint` steps 1–5): `x̂(t|T)` into `x_out` and
+    /// the band `k` of `P(t|T)` into `band_out`.
     #[allow(clippy::too_many_arguments)]
     fn step(
         &mut self,
@@ -190,63 +240,86 @@ impl Backward {
         x_filt: &[f64],
         x_pred_next: &[f64],
         xs_next: &[f64],
-    ) -> std::result::Result<(Vec<f64>, SymBand), BandError> {
+        x_out: &mut [f64],
+        band_out: &mut SymBand,
+    ) -> std::result::Result<(), BandError> {
         let (n, big_n) = (model.dims.n, model.subsystems);
         let (k, b) = (lam_post.width(), a.half_width());
-        let kappa = (k + 2 * b).min(big_n - 1);
-        let window = model.window(t);
-        let g = |i: usize| &self.roots[window.ids[i] as usize];
+        self.prepare(big_n, n, k, b);
+        let kappa = self.jm.width();
+        let bs = 2 * n;
+        let ids = &model.window(t).ids;
+        let roots = &self.roots;
+        let g = |i: usize| roots[ids[i] as usize].as_slice();
         // 1. I_b = Λˢ(t+1) − Λ⁻(t+1).
-        let mut ib = lam_s_next.clone();
+        self.ib.copy_band_from(lam_s_next);
         for i in 0..big_n {
             for d in 0..=k.min(big_n - 1 - i) {
                 let src = lam_prior_next.block(i, d);
-                for (o, s) in ib.block_mut(i, d).iter_mut().zip(src) {
+                for (o, s) in self.ib.block_mut(i, d).iter_mut().zip(src) {
                     *o -= s;
                 }
             }
         }
         // 2. W = I_b A_eff and M = A_effᵀ I_b A_eff, then 𝒥 block by block.
-        let mut w = GenBand::zeros(big_n, n, k + b);
-        sym_times_gen(&ib, a, &mut w);
-        let mut m = SymBand::zeros(big_n, n, kappa);
-        gen_t_times_gen(a, &w, &mut m);
-        let bs = 2 * n;
-        let mut jm = SymBand::zeros(big_n, bs, kappa);
+        sym_times_gen(&self.ib, a, &mut self.w);
+        gen_t_times_gen(a, &self.w, &mut self.m);
+        let hw = self.w.half_width();
         for i in 0..big_n {
             for d in 0..=kappa.min(big_n - 1 - i) {
                 let j = i + d;
-                let blk = jm.block_mut(i, d);
+                let blk = self.jm.block_mut(i, d);
+                blk.fill(0.0);
                 // Top left: Λ⁺_ij + M_ij.
+                let m_ij = self.m.block(i, d);
                 for c in 0..n {
                     for r in 0..n {
-                        let mut v = m.block(i, d)[r + c * n];
+                        let mut v = m_ij[r + c * n];
                         if d <= k {
                             v += lam_post.block(i, d)[r + c * n];
                         }
                         blk[r + c * bs] = v;
                     }
                 }
-                // Top right: (A_effᵀ I_b)_ij G_j = W(j, i)ᵀ G_j.
-                if j.abs_diff(i) <= w.half_width() {
-                    let wji = DMatrix::from_column_slice(n, n, w.block(j, i));
-                    let tr = wji.transpose() * g(j);
-                    let wij = DMatrix::from_column_slice(n, n, w.block(i, j));
-                    let bl = g(i).transpose() * wij;
+                if d <= hw {
+                    // Top right: (A_effᵀ I_b)_ij G_j = W(j, i)ᵀ G_j.
+                    self.tmp.fill(0.0);
+                    gemm_acc(&mut self.tmp, 1.0, self.w.block(j, i), true, g(j), false, n);
+                    // Bottom left: G_iᵀ W(i, j).
+                    self.tmp2.fill(0.0);
+                    gemm_acc(
+                        &mut self.tmp2,
+                        1.0,
+                        g(i),
+                        true,
+                        self.w.block(i, j),
+                        false,
+                        n,
+                    );
                     for c in 0..n {
                         for r in 0..n {
-                            blk[r + (n + c) * bs] = tr[(r, c)];
-                            blk[(n + r) + c * bs] = bl[(r, c)];
+                            blk[r + (n + c) * bs] = self.tmp[r + c * n];
+                            blk[(n + r) + c * bs] = self.tmp2[r + c * n];
                         }
                     }
                 }
                 // Bottom right: δ_ij I + G_iᵀ I_b,ij G_j.
                 if d <= k {
-                    let ibij = DMatrix::from_column_slice(n, n, ib.block(i, d));
-                    let br = g(i).transpose() * ibij * g(j);
+                    self.tmp.fill(0.0);
+                    gemm_acc(
+                        &mut self.tmp,
+                        1.0,
+                        self.ib.block(i, d),
+                        false,
+                        g(j),
+                        false,
+                        n,
+                    );
+                    self.tmp2.fill(0.0);
+                    gemm_acc(&mut self.tmp2, 1.0, g(i), true, &self.tmp, false, n);
                     for c in 0..n {
                         for r in 0..n {
-                            blk[(n + r) + (n + c) * bs] = br[(r, c)];
+                            blk[(n + r) + (n + c) * bs] = self.tmp2[r + c * n];
                         }
                     }
                 }
@@ -258,38 +331,30 @@ impl Backward {
             }
         }
         // 3. Block-banded Cholesky of 𝒥.
-        let mut chol = BandCholesky::new(big_n, bs, kappa);
-        chol.factor(&jm)?;
+        self.chol.factor(&self.jm)?;
         // 4. Mean: 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e.
-        let e: Vec<f64> = xs_next
-            .iter()
-            .zip(x_pred_next)
-            .map(|(s, p)| s - p)
-            .collect();
-        let mut v = vec![0.0; big_n * n];
-        lam_s_next.mul_vec(&e, &mut v);
-        let mut atv = vec![0.0; big_n * n];
-        a.mul_vec_transposed(&v, &mut atv);
-        let mut rhs = vec![0.0; big_n * bs];
+        for ((e, s), p) in self.e.iter_mut().zip(xs_next).zip(x_pred_next) {
+            *e = s - p;
+        }
+        lam_s_next.mul_vec(&self.e, &mut self.v);
+        a.mul_vec_transposed(&self.v, &mut self.atv);
         for i in 0..big_n {
             let gi = g(i);
             for r in 0..n {
-                rhs[i * bs + r] = atv[i * n + r];
-                rhs[i * bs + n + r] = (0..n).map(|c| gi[(c, r)] * v[i * n + c]).sum();
+                self.rhs[i * bs + r] = self.atv[i * n + r];
+                self.rhs[i * bs + n + r] = (0..n).map(|c| gi[c + r * n] * self.v[i * n + c]).sum();
             }
         }
-        chol.solve_in_place(&mut rhs);
-        let x: Vec<f64> = (0..big_n * n)
-            .map(|q| x_filt[q] + rhs[(q / n) * bs + q % n])
-            .collect();
+        self.chol.solve_in_place(&mut self.rhs);
+        for (q, x) in x_out.iter_mut().enumerate() {
+            *x = x_filt[q] + self.rhs[(q / n) * bs + q % n];
+        }
         // 5. Covariance: the x-parts of the band k of 𝒥⁻¹.
-        let mut inv = SymBand::zeros(big_n, bs, kappa);
-        chol.selected_inverse(&mut inv);
-        let mut band = SymBand::zeros(big_n, n, k);
+        self.chol.selected_inverse(&mut self.inv);
         for i in 0..big_n {
             for d in 0..=k.min(big_n - 1 - i) {
-                let src = inv.block(i, d);
-                let dst = band.block_mut(i, d);
+                let src = self.inv.block(i, d);
+                let dst = band_out.block_mut(i, d);
                 for c in 0..n {
                     for r in 0..n {
                         dst[r + c * n] = src[r + c * bs];
@@ -297,6 +362,18 @@ impl Backward {
                 }
             }
         }
-        Ok((x, band))
+        Ok(())
+    }
+
+    /// `Λˢ(t)`: the clique/separator precision of the loaded band of `P(t|T)` (step 6).
+    fn smoothed_precision(
+        &mut self,
+        band: &SymBand,
+        loading: f64,
+        out: &mut SymBand,
+    ) -> std::result::Result<(), BandError> {
+        self.loaded.copy_band_from(band);
+        load_diagonal(&mut self.loaded, loading);
+        completion_precision(&self.loaded, band.width(), out, &mut self.completion)
     }
 }
