@@ -13,7 +13,7 @@
 #
 # Usage: bench/run.sh            (about 5 minutes on a quiet 2-core machine, plus the build)
 # Environment: BENCH_RUNS (3), BENCH_WORK (target/bench), BENCH_OUT (BENCHMARKS.md),
-#   BENCH_BASELINE_STEPS (6000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
+#   BENCH_BASELINE_STEPS (12000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
 #   list its results, BENCH_KEEP=1 to keep the generated data.
 # Needs: cargo, python3 ≥ 3.11; installs GNU time (apt-get, as root) and numpy (in a venv
 # under BENCH_WORK, from PyPI) when they are missing.
@@ -24,7 +24,7 @@ WORK=${BENCH_WORK:-$ROOT/target/bench}
 RUNS=${BENCH_RUNS:-3}
 OUT=${BENCH_OUT:-$ROOT/BENCHMARKS.md}
 BASELINE_N=100
-BASELINE_T=${BENCH_BASELINE_STEPS:-6000}
+BASELINE_T=${BENCH_BASELINE_STEPS:-12000}
 THREADS=$(nproc)
 RESULTS=$WORK/results.jsonl
 log() { echo "[bench $(date +%H:%M:%S)] $*" >&2; }
