@@ -30,7 +30,7 @@ const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
 
 /// Chains at least this long parse the measurement and input files of a step in parallel
 /// (shorter steps cost less than waking a thread).
-const PARALLEL_READ_MIN: usize = 2048;
+const PARALLEL_READ_MIN: usize = 512;
 
 /// Prints a warning line on standard error (SPEC §7).
 pub fn warn(msg: impl std::fmt::Display) {
