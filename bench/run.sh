@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Reproduces every figure of BENCHMARKS.md (issue 5) and rewrites that file:
-#   - builds sisfilt in release mode;
+#   - builds sisfilt in release mode; measures the parallel capacity of the machine (two
+#     CPU-bound processes against one) and the filter core without I/O (criterion, one and
+#     two threads);
 #   - generates workload W (bench/workload.toml, N = 10⁴, T = 10³) with `sisfilt simulate`
 #     and runs the whole CLI on it under /usr/bin/time -v, with one thread and with all
 #     cores (RAYON_NUM_THREADS), reporting the read / filter / write split (`--timings`);
@@ -13,7 +15,7 @@
 #
 # Usage: bench/run.sh            (about 5 minutes on a quiet 2-core machine, plus the build)
 # Environment: BENCH_RUNS (3), BENCH_WORK (target/bench), BENCH_OUT (BENCHMARKS.md),
-#   BENCH_BASELINE_STEPS (6000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
+#   BENCH_BASELINE_STEPS (12000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
 #   list its results, BENCH_KEEP=1 to keep the generated data.
 # Needs: cargo, python3 ≥ 3.11; installs GNU time (apt-get, as root) and numpy (in a venv
 # under BENCH_WORK, from PyPI) when they are missing.
@@ -24,7 +26,7 @@ WORK=${BENCH_WORK:-$ROOT/target/bench}
 RUNS=${BENCH_RUNS:-3}
 OUT=${BENCH_OUT:-$ROOT/BENCHMARKS.md}
 BASELINE_N=100
-BASELINE_T=${BENCH_BASELINE_STEPS:-6000}
+BASELINE_T=${BENCH_BASELINE_STEPS:-12000}
 THREADS=$(nproc)
 RESULTS=$WORK/results.jsonl
 log() { echo "[bench $(date +%H:%M:%S)] $*" >&2; }
@@ -57,8 +59,9 @@ if ! "$VENV/bin/python" -c 'import numpy' 2>/dev/null; then
 fi
 PY=$VENV/bin/python
 
-log "building (release)"
+log "building (release, and the criterion benches)"
 cargo build --release --locked -q
+cargo bench --locked --bench filter --no-run -q 2>/dev/null
 BIN=$ROOT/target/release/sisfilt
 
 : >"$RESULTS"
@@ -69,6 +72,27 @@ import json, sys
 path, runs, threads, bn, bt, load, rustc, commit = sys.argv[1:]
 json.dump(dict(runs=int(runs), threads=int(threads), baseline_n=int(bn), baseline_t=int(bt),
                loadavg=load, rustc=rustc, commit=commit), open(path, "w"))
+EOF
+
+# How many cores the machine gives right now: two CPU-bound processes against one (2 on an
+# idle 2-core machine; less when others are busy, and then thread speed-ups are capped too).
+capacity=$(python3 - <<'EOF'
+import subprocess, sys, time
+spin = "x = 0\nfor i in range(12_000_000): x += i"
+def run(k):
+    t = time.time()
+    procs = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(k)]
+    for p in procs: p.wait()
+    return time.time() - t
+one = min(run(1) for _ in range(2)); two = min(run(2) for _ in range(2))
+print(f"{2 * one / two:.2f}")
+EOF
+)
+log "parallel capacity of the machine: ${capacity}× (two CPU-bound processes against one)"
+python3 - "$WORK/env.json" "$capacity" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1])); env["capacity"] = float(sys.argv[2])
+json.dump(env, open(sys.argv[1], "w"))
 EOF
 
 # A config: workload W with N and T replaced. usage: config N T NAME -> $WORK/NAME.toml
@@ -96,6 +120,17 @@ measure() {
         python3 bench/report.py record "$RESULTS" "$name" "$threads" "$WORK/time.txt" "$WORK/stderr.txt"
     done
 }
+
+# --- filter core (criterion, no I/O) -----------------------------------------------------
+log "filter core: cargo bench --bench filter -- core (one and $THREADS threads)"
+rm -rf "$ROOT/target/criterion/core"
+cargo bench --locked --bench filter -q -- core --warm-up-time 2 --measurement-time 8 >/dev/null 2>&1
+python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1]))
+env["core"] = {name: [ns, elems] for name, ns, elems in json.loads(sys.argv[2]) if name.startswith("core/")}
+json.dump(env, open(sys.argv[1], "w"))
+EOF
 
 # --- workload W --------------------------------------------------------------------------
 log "workload W: simulate N = 10000, T = 1000"
@@ -180,7 +215,7 @@ fi
 # --- criterion (optional) ----------------------------------------------------------------
 if [ "${BENCH_CRITERION:-0}" = 1 ]; then
     log "criterion: cargo bench --bench filter"
-    cargo bench --locked --bench filter -q >/dev/null
+    cargo bench --locked --bench filter -q >/dev/null 2>&1
     python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
 import json, sys
 env = json.load(open(sys.argv[1])); env["criterion"] = json.loads(sys.argv[2])

@@ -39,6 +39,10 @@ const ESTIMATE_POWER_STEPS: usize = 400;
 /// Above this many lifted states `estimate` skips its stability check (`check` still does it).
 const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
 
+/// Chains at least this long parse the measurement and input files of a step in parallel
+/// (shorter steps cost less than waking a thread).
+const PARALLEL_READ_MIN: usize = 512;
+
 pub use crate::messages::warn;
 
 /// Writes `text` and a line break to standard output; a closed pipe comes back as an
@@ -548,6 +552,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         .map_err(|e| Error::io(&out_name, e))?;
     let mut writer = BackgroundWriter::new(
         writer,
+        big_n,
         big_n * n,
         big_n * n * n,
         (cross > 0).then_some((big_n, n, cross)),
@@ -562,10 +567,15 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     let mut steps = 0;
     let mut clock = PhaseClock::default();
     loop {
-        // The measurement and input files are parsed side by side.
+        // The measurement and input files are parsed side by side, on long chains.
         let next_t = meas.next_t();
-        let (t, inputs_read) =
-            clock.read(|| rayon::join(|| meas.read_step(&mut y), || inputs.next(next_t, &mut u)));
+        let (t, inputs_read) = clock.read(|| {
+            if big_n >= PARALLEL_READ_MIN {
+                rayon::join(|| meas.read_step(&mut y), || inputs.next(next_t, &mut u))
+            } else {
+                (meas.read_step(&mut y), inputs.next(next_t, &mut u))
+            }
+        });
         let Some(t) = t? else {
             // The inputs were read one step ahead of the measurements' end.
             if let (Ok(()), Some(e)) = (&inputs_read, inputs.read_beyond(steps)) {

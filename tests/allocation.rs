@@ -211,7 +211,7 @@ fn steps_after_the_first_allocate_nothing() {
                 let writer =
                     EstimatesWriter::new(std::io::sink(), format, 2, 0, serde_json::json!({}))
                         .unwrap();
-                let mut background = BackgroundWriter::new(writer, x.len(), p.len(), None);
+                let mut background = BackgroundWriter::new(writer, big_n, x.len(), p.len(), None);
                 background.write_step(1, &x, &p, None).unwrap();
                 let mut t = 1;
                 let count = allocations_in(|| {

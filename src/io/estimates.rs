@@ -114,7 +114,7 @@ impl<W: Write> EstimatesWriter<W> {
     }
 
     /// Writes the rows `(t, 1..N)` from `x̂` (`N·n`) and `P` (`N` blocks `n × n`,
-    /// column-major); in JSON with `cross > 0`, also the blocks `(i, i+d)` of `band`.
+    /// column-major).
     pub fn write_step(
         &mut self,
         t: usize,
@@ -211,58 +211,83 @@ impl EstimatesWriter<Output> {
     }
 }
 
-/// One time step handed to the writer thread.
-struct StepRows {
-    t: usize,
+/// Steps handed to the writer thread together: the first step is `first`, and `x`, `p` hold
+/// `count` steps one after the other.
+struct StepBatch {
+    first: usize,
+    count: usize,
     x: Vec<f64>,
     p: Vec<f64>,
-    /// The covariance band, for a writer with cross-covariance columns.
-    band: Option<SymBand>,
+    /// One covariance band per step, for a writer with cross-covariance columns.
+    bands: Vec<SymBand>,
 }
 
-/// An [`EstimatesWriter`] on a thread of its own, one step behind the caller: formatting and
-/// the `write` system calls of step `t` overlap the reading and filtering of step `t + 1`.
-/// Two step buffers go back and forth through bounded channels, so a step allocates nothing.
+/// Rows handed to the writer thread at a time, at least (short chains batch several steps, so
+/// that waking the thread does not cost more than the work it is given).
+const BATCH_MIN_ROWS: usize = 4096;
+
+/// An [`EstimatesWriter`] on a thread of its own, behind the caller: formatting and the
+/// `write` system calls of step `t` overlap the reading and filtering of the next steps.
+/// Two batch buffers go back and forth through bounded channels, so a step allocates nothing.
 pub struct BackgroundWriter<W: Write + Send + 'static = Output> {
-    to_writer: Option<std::sync::mpsc::SyncSender<StepRows>>,
-    free: std::sync::mpsc::Receiver<StepRows>,
+    to_writer: Option<std::sync::mpsc::SyncSender<StepBatch>>,
+    free: std::sync::mpsc::Receiver<StepBatch>,
+    /// The batch being filled, if any.
+    current: Option<StepBatch>,
+    /// Steps per batch, and the numbers of one step.
+    per_batch: usize,
+    step_x: usize,
+    step_p: usize,
     thread: Option<std::thread::JoinHandle<std::io::Result<EstimatesWriter<W>>>>,
-    /// Time the writer thread spent formatting and writing (not waiting).
+    /// Time the writer thread spent formatting and writing (not waiting), in nanoseconds.
     busy: std::sync::Arc<std::sync::atomic::AtomicU64>,
 }
 
 impl<W: Write + Send + 'static> BackgroundWriter<W> {
-    /// Starts the thread; steps have `values_x` and `values_p` numbers (`N·n`, `N·n²`), and a
-    /// covariance band of shape `(N, n, width)` when `band` is given.
+    /// Starts the thread for steps of `rows` rows with `step_x` and `step_p` numbers
+    /// (`N·n`, `N·n²`).
+    /// With `band = Some((N, n, width))` each step also carries a covariance band.
     pub fn new(
         mut writer: EstimatesWriter<W>,
-        values_x: usize,
-        values_p: usize,
+        rows: usize,
+        step_x: usize,
+        step_p: usize,
         band: Option<(usize, usize, usize)>,
     ) -> Self {
         use std::sync::atomic::Ordering;
-        let (to_writer, from_caller) = std::sync::mpsc::sync_channel::<StepRows>(2);
-        let (to_caller, free) = std::sync::mpsc::sync_channel::<StepRows>(2);
+        let per_batch = BATCH_MIN_ROWS.div_ceil(rows.max(1));
+        let (to_writer, from_caller) = std::sync::mpsc::sync_channel::<StepBatch>(2);
+        let (to_caller, free) = std::sync::mpsc::sync_channel::<StepBatch>(2);
         for _ in 0..2 {
-            let rows = StepRows {
-                t: 0,
-                x: vec![0.0; values_x],
-                p: vec![0.0; values_p],
-                band: band.map(|(nb, bs, w)| SymBand::zeros(nb, bs, w)),
+            let batch = StepBatch {
+                first: 0,
+                count: 0,
+                x: vec![0.0; per_batch * step_x],
+                p: vec![0.0; per_batch * step_p],
+                bands: band.map_or_else(Vec::new, |(nb, bs, w)| {
+                    (0..per_batch).map(|_| SymBand::zeros(nb, bs, w)).collect()
+                }),
             };
-            to_caller.send(rows).expect("the channel has room");
+            to_caller.send(batch).expect("the channel has room");
         }
         let busy = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
         let busy_thread = busy.clone();
         let thread = std::thread::Builder::new()
             .name("sisfilt-writer".into())
             .spawn(move || {
-                for rows in from_caller {
+                for batch in from_caller {
                     let start = std::time::Instant::now();
-                    writer.write_step(rows.t, &rows.x, &rows.p, rows.band.as_ref())?;
+                    for k in 0..batch.count {
+                        writer.write_step(
+                            batch.first + k,
+                            &batch.x[k * step_x..(k + 1) * step_x],
+                            &batch.p[k * step_p..(k + 1) * step_p],
+                            batch.bands.get(k),
+                        )?;
+                    }
                     busy_thread.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
                     // The caller may be gone (an error on its side): nothing to give back.
-                    let _ = to_caller.send(rows);
+                    let _ = to_caller.send(batch);
                 }
                 Ok(writer)
             })
@@ -270,13 +295,18 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         Self {
             to_writer: Some(to_writer),
             free,
+            current: None,
+            per_batch,
+            step_x,
+            step_p,
             thread: Some(thread),
             busy,
         }
     }
 
     /// Hands the rows `(t, 1..N)` to the writer thread (see [`EstimatesWriter::write_step`]);
-    /// waits while it is two steps behind. An error of the thread is returned here.
+    /// steps must come in order. Waits while the thread is two batches behind; an error of
+    /// the thread is returned here.
     pub fn write_step(
         &mut self,
         t: usize,
@@ -284,16 +314,33 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         p: &[f64],
         band: Option<&SymBand>,
     ) -> std::io::Result<()> {
-        let Ok(mut rows) = self.free.recv() else {
-            return Err(self.thread_error());
+        let mut batch = match self.current.take() {
+            Some(batch) => batch,
+            None => {
+                let Ok(mut batch) = self.free.recv() else {
+                    return Err(self.thread_error());
+                };
+                batch.first = t;
+                batch.count = 0;
+                batch
+            }
         };
-        rows.t = t;
-        rows.x.copy_from_slice(x);
-        rows.p.copy_from_slice(p);
-        if let (Some(dst), Some(src)) = (rows.band.as_mut(), band) {
+        let k = batch.count;
+        batch.x[k * self.step_x..(k + 1) * self.step_x].copy_from_slice(x);
+        batch.p[k * self.step_p..(k + 1) * self.step_p].copy_from_slice(p);
+        if let (Some(dst), Some(src)) = (batch.bands.get_mut(k), band) {
             dst.copy_band_from(src);
         }
-        let sent = self.to_writer.as_ref().map(|w| w.send(rows));
+        batch.count += 1;
+        if batch.count < self.per_batch {
+            self.current = Some(batch);
+            return Ok(());
+        }
+        self.send(batch)
+    }
+
+    fn send(&mut self, batch: StepBatch) -> std::io::Result<()> {
+        let sent = self.to_writer.as_ref().map(|w| w.send(batch));
         match sent {
             Some(Ok(())) => Ok(()),
             _ => Err(self.thread_error()),
@@ -310,13 +357,16 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
     }
 
     /// Seconds the writer thread spent formatting and writing.
-    pub fn busy_seconds(&self) -> f64 {
+    fn busy_seconds(&self) -> f64 {
         self.busy.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
     }
 
     /// Waits until every step is written; returns the writer and the seconds the thread
     /// spent formatting and writing.
     pub fn finish(mut self) -> std::io::Result<(EstimatesWriter<W>, f64)> {
+        if let Some(batch) = self.current.take() {
+            self.send(batch)?;
+        }
         self.to_writer = None;
         let writer = match self.thread.take().expect("finish once").join() {
             Ok(result) => result?,
@@ -339,6 +389,27 @@ impl<W: Write + Send + 'static> Drop for BackgroundWriter<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The writer thread, batching steps of short chains, writes the same bytes as the writer
+    /// called directly.
+    #[test]
+    fn background_writer_equals_direct_writer() {
+        for (n, rows, steps) in [(2, 3, 2000), (1, 5000, 3), (3, 700, 20)] {
+            let x: Vec<f64> = (0..rows * n).map(|k| (k as f64 * 0.3).cos()).collect();
+            let p: Vec<f64> = (0..rows * n * n).map(|k| k as f64 / 9.0).collect();
+            let mut direct =
+                EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, serde_json::json!({})).unwrap();
+            let writer =
+                EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, serde_json::json!({})).unwrap();
+            let mut background = BackgroundWriter::new(writer, rows, x.len(), p.len(), None);
+            for t in 1..=steps {
+                direct.write_step(t, &x, &p, None).unwrap();
+                background.write_step(t, &x, &p, None).unwrap();
+            }
+            let (writer, _) = background.finish().unwrap();
+            assert!(writer.finish(None).unwrap() == direct.finish(None).unwrap());
+        }
+    }
 
     /// Rows written by the parallel chunked path equal rows formatted one by one.
     #[test]
