@@ -275,7 +275,7 @@ impl InfoWorkspace {
 }
 
 /// `P_ii += ε (tr P_ii / n) I` on every diagonal block (SPEC §9 "Numerics").
-fn load_diagonal(p: &mut SymBand, eps: f64) {
+pub(crate) fn load_diagonal(p: &mut SymBand, eps: f64) {
     if eps == 0.0 {
         return;
     }
@@ -585,24 +585,37 @@ fn add_process_noise(model: &Model, t: usize, p: &mut SymBand) {
     }
 }
 
-/// A band error at time `t` as the filter's error, naming `t`, the block and the remedies of
-/// SPEC §9.
+/// A band error at time `t` of the joint filter as its error, naming `t`, the block and the
+/// remedies of SPEC §9.
 fn band_error_at(t: usize, loading: f64, k: usize, what: &str, e: BandError) -> Error {
+    band_error("joint filter", t, loading, k, &format!("the {what} "), e)
+}
+
+/// A band error at time `t` of `who` (the joint filter or smoother): names `t`, the block
+/// (`what` prefixes its description) and the remedies of SPEC §9.
+pub(crate) fn band_error(
+    who: &str,
+    t: usize,
+    loading: f64,
+    k: usize,
+    what: &str,
+    e: BandError,
+) -> Error {
     let (i, detail) = match e {
         BandError::CliqueNotPositiveDefinite { first, last } => (
             first + 1,
-            format!("the {what} clique of blocks {}..{}", first + 1, last + 1),
+            format!("{what}clique of blocks {}..{}", first + 1, last + 1),
         ),
         BandError::PivotNotPositiveDefinite { block } => (
             block + 1,
-            format!("the {what} Cholesky pivot of block {}", block + 1),
+            format!("{what}Cholesky pivot of block {}", block + 1),
         ),
     };
     Error::Numerical {
         t,
         i,
         msg: format!(
-            "joint filter: {detail} is not positive definite; raise --loading (now {loading:e}) or --band (now {k})"
+            "{who}: {detail} is not positive definite; raise --loading (now {loading:e}) or --band (now {k})"
         ),
     }
 }

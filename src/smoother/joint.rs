@@ -24,6 +24,7 @@ use crate::band::{
     gen_t_times_gen, sym_times_gen,
 };
 use crate::error::{Error, Result};
+use crate::filter::joint::{band_error, load_diagonal};
 use crate::filter::{ChainFilter, JointFilter, JointOptions};
 use crate::linalg::psd_sqrt;
 use crate::model::Model;
@@ -127,39 +128,8 @@ impl Smoother for JointSmoother<'_> {
     }
 }
 
-/// `P_ii += ε (tr P_ii / n) I` (SPEC §9 "Numerics").
-fn load_diagonal(p: &mut SymBand, eps: f64) {
-    if eps == 0.0 {
-        return;
-    }
-    let n = p.bs();
-    for i in 0..p.nb() {
-        let b = p.block_mut(i, 0);
-        let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
-        for c in 0..n {
-            b[c * n + c] += eps * trace / n as f64;
-        }
-    }
-}
-
 fn smoother_error(t: usize, loading: f64, k: usize, e: BandError) -> Error {
-    let (i, what) = match e {
-        BandError::CliqueNotPositiveDefinite { first, last } => (
-            first + 1,
-            format!("the clique of blocks {}..{}", first + 1, last + 1),
-        ),
-        BandError::PivotNotPositiveDefinite { block } => (
-            block + 1,
-            format!("the Cholesky pivot of block {}", block + 1),
-        ),
-    };
-    Error::Numerical {
-        t,
-        i,
-        msg: format!(
-            "joint smoother: {what} is not positive definite; raise --loading (now {loading:e}) or --band (now {k})"
-        ),
-    }
+    band_error("joint smoother", t, loading, k, "the ", e)
 }
 
 /// Scratch of the backward pass, sized for the current `A_eff` half-width `b` (resized only
