@@ -602,15 +602,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
             .write(|| writer.write_step(t, x_hat, p_hat, band))
             .map_err(|e| Error::io(&out_name, e))?;
         if let Some(truth) = truth.as_mut() {
-            if clock.read(|| truth.read_step(&mut x_true))?.is_none() {
-                return Err(Error::File {
-                    file: truth.name().to_string(),
-                    msg: format!(
-                        "ends before t = {t}; the truth must cover every step of the measurements"
-                    ),
-                }
-                .into());
-            }
+            clock.read(|| read_truth_step(truth, t, &mut x_true))?;
             let scored = match (args.predicted, t > 1) {
                 (false, _) => Some((x_hat, p_hat)),
                 (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
@@ -632,14 +624,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         }
         steps = t;
     }
-    if steps == 0 {
-        return Err(Error::File {
-            file: meas.name().to_string(),
-            msg: "holds no measurement rows".into(),
-        }
-        .into());
-    }
-    inputs.finish(steps)?;
+    finish_inputs(meas.name(), steps, inputs)?;
     let elapsed = started.elapsed().as_secs_f64();
     info(format!(
         "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
@@ -730,27 +715,12 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         smoother.step(&y, &u)?;
         if let Some(truth) = truth.as_mut() {
             let mut row = vec![0.0; big_n * (n + 1)];
-            if truth.read_step(&mut row)?.is_none() {
-                return Err(Error::File {
-                    file: truth.name().to_string(),
-                    msg: format!(
-                        "ends before t = {t}; the truth must cover every step of the measurements"
-                    ),
-                }
-                .into());
-            }
+            read_truth_step(truth, t, &mut row)?;
             truth_rows.push(row);
         }
         steps = t;
     }
-    if steps == 0 {
-        return Err(Error::File {
-            file: meas.name().to_string(),
-            msg: "holds no measurement rows".into(),
-        }
-        .into());
-    }
-    inputs.finish(steps)?;
+    finish_inputs(meas.name(), steps, inputs)?;
     let smoothed = smoother.finish()?;
     for note in &smoothed.notes {
         warn(note);
@@ -777,6 +747,39 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         report_accuracy(r);
     }
     Ok(writer.commit(report.as_ref())?)
+}
+
+/// Reads the truth of step `t` into `out`; a truth file that ends before the measurements is
+/// bad input.
+fn read_truth_step<R: std::io::Read>(
+    truth: &mut crate::io::StepReader<R>,
+    t: usize,
+    out: &mut [f64],
+) -> Result<()> {
+    if truth.read_step(out)?.is_none() {
+        return Err(Error::File {
+            file: truth.name().to_string(),
+            msg: format!(
+                "ends before t = {t}; the truth must cover every step of the measurements"
+            ),
+        }
+        .into());
+    }
+    Ok(())
+}
+
+/// Ends a run over `steps` measured steps: an empty measurement file is bad input, and an
+/// inputs file must end where the measurements do.
+fn finish_inputs(meas_name: &str, steps: usize, inputs: InputStream) -> Result<()> {
+    if steps == 0 {
+        return Err(Error::File {
+            file: meas_name.to_string(),
+            msg: "holds no measurement rows".into(),
+        }
+        .into());
+    }
+    inputs.finish(steps)?;
+    Ok(())
 }
 
 /// The joint filter's options from the command line (`None` for the other filters, which

@@ -180,12 +180,10 @@ fn compare(
 }
 
 fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> JointOptions {
+    // Loading 0 too: then the information form is exactly the covariance form.
     JointOptions {
-        band: model.subsystems - 1,
-        band_tol: 0.0,
         loading: Some(0.0),
-        second_moment,
-        dropouts,
+        ..JointOptions::full_band(model, second_moment, dropouts)
     }
 }
 

@@ -53,6 +53,16 @@ G = [[0.1, 0.4], [-0.2, 0.2]]
 p = 0.3
 ";
 
+/// `SMALL` cut to one subsystem (its override then covers that one).
+fn one_subsystem() -> Model {
+    model_from(
+        &SMALL
+            .replace("subsystems = 3", "subsystems = 1")
+            .replace("[0.9, 0.5, 0.7]", "0.6")
+            .replace("subsystems = [2, 3]", "subsystems = [1, 1]"),
+    )
+}
+
 /// `x(t+1) = A_eff x + U_eff u` at time `t` from the dense interconnection solve.
 fn dense_step(model: &Model, t: usize, x: &DVector<f64>, u: &DVector<f64>) -> DVector<f64> {
     let (n, m, big_n) = (model.dims.n, model.dims.m, model.subsystems);
@@ -254,12 +264,10 @@ fn centralized_smoother_equals_batch_estimator() {
 }
 
 fn full_band(model: &Model, dropouts: Dropouts, second_moment: SecondMoment) -> JointOptions {
+    // Loading 0 too: then the information form is exactly the covariance form.
     JointOptions {
-        band: model.subsystems - 1,
-        band_tol: 0.0,
         loading: Some(0.0),
-        second_moment,
-        dropouts,
+        ..JointOptions::full_band(model, second_moment, dropouts)
     }
 }
 
@@ -280,15 +288,7 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
                 .replace("subsystems = [2, 3]", "subsystems = [2, 2]"),
         ),
     ));
-    models.push((
-        "N = 1".into(),
-        model_from(
-            &SMALL
-                .replace("subsystems = 3", "subsystems = 1")
-                .replace("[0.9, 0.5, 0.7]", "0.6")
-                .replace("subsystems = [2, 3]", "subsystems = [1, 1]"),
-        ),
-    ));
+    models.push(("N = 1".into(), one_subsystem()));
     for (name, model) in &models {
         let run = simulate_run(model, 9);
         let steps = 25.min(run.y.len());
@@ -328,12 +328,7 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
 /// Nahi filter, written here from SPEC §3 and §10.
 #[test]
 fn one_subsystem_smoothers_equal_plain_rts() {
-    let model = model_from(
-        &SMALL
-            .replace("subsystems = 3", "subsystems = 1")
-            .replace("[0.9, 0.5, 0.7]", "0.6")
-            .replace("subsystems = [2, 3]", "subsystems = [1, 1]"),
-    );
+    let model = one_subsystem();
     let run = simulate_run(&model, 3);
     let (n, steps) = (2, run.y.len());
     // Forward: the Nahi filter with the exact moment S = P + m mᵀ (v = 0 for N = 1).

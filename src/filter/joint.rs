@@ -63,6 +63,18 @@ impl Default for JointOptions {
 }
 
 impl JointOptions {
+    /// The whole lifted covariance (`K = N − 1`) and the exact `A_eff` (tolerance 0): the
+    /// centralized filter of SPEC §5, in the information form (default loading).
+    pub fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> Self {
+        Self {
+            band: model.subsystems - 1,
+            band_tol: 0.0,
+            loading: None,
+            second_moment,
+            dropouts,
+        }
+    }
+
     /// The loading `ε` in force for `model`.
     pub fn loading_for(&self, model: &Model) -> f64 {
         self.loading.unwrap_or(if model.q_is_zero() {

@@ -129,17 +129,12 @@ impl CentralizedSmoother<'_> {
     /// Smooths the stored data by the information form at full band (SPEC §10 fallback).
     fn information_form_fallback(&self, t: usize, condition: f64) -> Result<Smoothed> {
         let model = self.model;
-        let opts = JointOptions {
-            band: model.subsystems - 1,
-            band_tol: 0.0,
-            loading: None,
-            second_moment: SecondMoment::Lifted,
-            dropouts: if self.known {
-                Dropouts::Known
-            } else {
-                Dropouts::Unknown
-            },
+        let dropouts = if self.known {
+            Dropouts::Known
+        } else {
+            Dropouts::Unknown
         };
+        let opts = JointOptions::full_band(model, SecondMoment::Lifted, dropouts);
         let mut joint: Box<dyn Smoother> = Box::new(JointSmoother::new(model, opts)?);
         for (y, u) in self.y.iter().zip(&self.u) {
             joint.step(y, u)?;

@@ -117,7 +117,11 @@ impl Smoother for JointSmoother<'_> {
         }
         let p = bands
             .iter()
-            .map(|b| (0..big_n).flat_map(|i| b.block(i, 0).to_vec()).collect())
+            .map(|b| {
+                (0..big_n)
+                    .flat_map(|i| b.block(i, 0).iter().copied())
+                    .collect()
+            })
             .collect();
         Ok(Smoothed {
             x: xs,
