@@ -942,6 +942,9 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
 /// The NEES warning of SPEC §3 for each filter of an evaluation.
 fn warn_left_out(result: &crate::evaluate::Evaluation, context: &str) {
     for f in &result.filters {
+        for note in &f.notes {
+            warn(format!("{}{context}: {note}", f.name));
+        }
         if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
             warn(format!(
                 "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",

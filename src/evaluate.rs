@@ -21,7 +21,9 @@ use crate::filter::{
 use crate::inputs::InputStream;
 use crate::model::Model;
 use crate::simulate::simulate;
-use crate::smoother::{CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother};
+use crate::smoother::{
+    CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherSchedule,
+};
 
 /// The filters compared, in table order; the smoothers (SPEC §10) run with `--smooth`.
 pub const FILTERS: [&str; 9] = [
@@ -82,6 +84,9 @@ pub struct FilterResult {
     /// The average NEES at each time step `t = 1..T` over runs and subsystems (`null` where
     /// infinite or where every term fell under the resolution floor, or before the burn-in).
     pub nees_per_step: Vec<Option<f64>>,
+    /// What the user should know about this filter's run (e.g. the centralized smoother fell
+    /// back to the information form), printed as warnings.
+    pub notes: Vec<String>,
 }
 
 /// The result of an evaluation.
@@ -161,11 +166,31 @@ const MAX_REALISATION_BYTES: usize = 1 << 30;
 /// runs in full for every run.
 const MAX_SCHEDULE_BYTES: usize = 1 << 30;
 
-/// The covariance passes computed once for all runs (SPEC §5, §9).
+/// The covariance passes computed once for all runs (SPEC §5, §9, §10).
 #[derive(Default)]
 struct Schedules<'m> {
     centralized: Option<CentralizedSchedule<'m>>,
     joint: Option<JointSchedule<'m>>,
+    /// Per entry of [`FILTERS`], for the smoothers: the gains and covariances of the backward
+    /// pass.
+    smoothers: Vec<Option<SmootherSchedule>>,
+}
+
+/// Bytes the schedule of the centralized or joint smoother needs: its gains and the diagonal blocks of
+/// `P(t|T)` per step (for `joint`, the factor of `𝒥` with blocks `2n × 2n` and bandwidth
+/// `κ = k + 2b` and `Λˢ(t+1)` with band `k`; `b` is the first step's).
+fn smoother_schedule_bytes(model: &Model, name: &str, opts: &EvaluateOptions) -> Result<f64> {
+    let (n, big_n) = (model.dims.n as f64, model.subsystems as f64);
+    let per_step = match name {
+        "centralized-smoother" => (big_n * n).powi(2) + big_n * n * n,
+        _ => {
+            let filter = JointFilter::new(model, joint_options(opts))?;
+            let k = filter.band();
+            let kappa = (k + 2 * filter.a_eff_half_width()).min(model.subsystems - 1) as f64;
+            big_n * ((kappa + 1.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
+        }
+    };
+    Ok(8.0 * per_step * model.steps as f64)
 }
 
 fn joint_options(opts: &EvaluateOptions) -> JointOptions {
@@ -298,6 +323,26 @@ fn run_filters(
                 per_step.terms[t] = terms_now - terms;
                 per_step.infinite[t] = infinite_now - infinite;
             };
+            if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
+                // The filter's means, then the stored backward gains (SPEC §10).
+                let mut f = match schedule.forward {
+                    Some(joint) => Box::new(JointFilter::new(model, joint)?),
+                    None => {
+                        make_filter(model, name.trim_end_matches("-smoother"), opts, schedules)?
+                    }
+                };
+                let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
+                for t in 0..data.y.len() {
+                    f.step(&data.y[t], &data.u[t])?;
+                    x_filt.push(f.filtered().0.to_vec());
+                    x_pred.push(f.predicted().0.to_vec());
+                }
+                let xs = schedule.smooth_means(model, &x_filt, &x_pred);
+                for t in 0..xs.len() {
+                    score(t, &xs[t], &schedule.p[t]);
+                }
+                return Ok((acc, per_step));
+            }
             if is_smoother(name) {
                 let mut s = make_smoother(model, name, opts)?;
                 for t in 0..data.y.len() {
@@ -404,16 +449,41 @@ pub fn evaluate(
         .position(|&f| f == "centralized")
         .expect("listed");
     let joint = FILTERS.iter().position(|&f| f == "joint").expect("listed");
-    let schedules = Schedules {
-        centralized: (active[central]
+    // A smoother replays the means of its filter, so that filter's schedule is needed too.
+    let needed = |filter: usize| {
+        let smoother = format!("{}-smoother", FILTERS[filter]);
+        active[filter]
+            || FILTERS
+                .iter()
+                .zip(&active)
+                .any(|(f, &a)| a && *f == smoother)
+    };
+    let mut schedules = Schedules {
+        centralized: (needed(central)
             && CentralizedSchedule::bytes(model, model.steps) <= MAX_SCHEDULE_BYTES)
             .then(|| CentralizedSchedule::new(model, &u, opts.max_lifted))
             .transpose()?,
-        joint: (active[joint]
+        joint: (needed(joint)
             && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
             .then(|| JointSchedule::new(model, joint_options(&opts), &u))
             .transpose()?,
+        smoothers: Vec::new(),
     };
+    for (k, name) in FILTERS.iter().enumerate() {
+        // A smoother whose backward pass fails is left to the runs, which report the error.
+        // The two-step filter's covariances depend on the data (its local moment propagates
+        // the realised `B v̂`, SPEC §3), so the distributed smoother runs in full every time.
+        let schedule = if active[k]
+            && is_smoother(name)
+            && *name != "distributed-smoother"
+            && smoother_schedule_bytes(model, name, &opts)? <= MAX_SCHEDULE_BYTES as f64
+        {
+            SmootherSchedule::new(make_smoother(model, name, &opts)?, model, &u).ok()
+        } else {
+            None
+        };
+        schedules.smoothers.push(schedule);
+    }
     let results: Vec<RunResult> = (0..opts.runs)
         .into_par_iter()
         .map(|r| {
@@ -479,6 +549,11 @@ pub fn evaluate(
             } else {
                 Vec::new()
             },
+            notes: schedules
+                .smoothers
+                .get(k)
+                .and_then(Option::as_ref)
+                .map_or_else(Vec::new, |s| s.notes.clone()),
         })
         .collect();
     Ok(Evaluation {

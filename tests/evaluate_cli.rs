@@ -144,3 +144,48 @@ fn table_lists_filters_and_notes_skipped_ones() {
         "{stdout}"
     );
 }
+
+/// A chain whose predicted covariance is singular (`Q = 0`, rank-one `A`, no coupling out of
+/// the states): `evaluate --smooth` says, once, that the centralized smoother fell back to
+/// the information form (SPEC §10), and its row still beats the filter.
+#[test]
+fn smoother_fallback_is_announced() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("singular.toml");
+    std::fs::write(
+        &config,
+        "subsystems = 3\nsteps = 12\nseed = 2\n[interconnection]\nplus = 1\nminus = 1\n\
+         [model]\nA = [[0.8, 0.4], [0.4, 0.2]]\nB = [[0.3, 0.1], [0.1, 0.25]]\n\
+         D = [[0.5, 0.1], [0.2, 0.6]]\nG = [[0.2, 0.3], [0.25, 0.15]]\nH = [[0.0], [0.0]]\n\
+         J = [[1.0, 0.5]]\nM = [[0.2]]\nQ = [[0.0, 0.0], [0.0, 0.0]]\n[dropout]\np = 0.7\n[initial]\ncov = [[0.8, 0.1], [0.1, 0.4]]\n",
+    )
+    .unwrap();
+    let out = dir.path().join("eval.json");
+    let run = Command::cargo_bin("sisfilt")
+        .unwrap()
+        .arg("evaluate")
+        .arg(&config)
+        .args(["--runs", "20", "--smooth", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    let warnings: Vec<&str> = stderr
+        .lines()
+        .filter(|l| {
+            l.starts_with("warning: centralized-smoother: ") && l.contains("information form")
+        })
+        .collect();
+    assert_eq!(warnings.len(), 1, "{stderr}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
+    let row = v["filters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["name"] == "centralized-smoother")
+        .unwrap();
+    assert_eq!(row["notes"].as_array().unwrap().len(), 1);
+    assert!(row["rmse_ratio_to_filter"].as_f64().unwrap() < 1.0);
+}

@@ -10,11 +10,12 @@ mod common;
 use common::{dense_interconnect, model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{
-    ChainFilter, Dropouts, JointOptions, SecondMoment, TwoStepOptions, two_step,
+    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
+    TwoStepOptions, two_step,
 };
 use sisfilt::model::Model;
 use sisfilt::smoother::{
-    CentralizedSmoother, DistributedSmoother, JointSmoother, Smoothed, Smoother,
+    CentralizedSmoother, DistributedSmoother, JointSmoother, Smoothed, Smoother, SmootherSchedule,
 };
 
 /// A small chain (N·n = 6) with inputs, Q > 0 and overrides in time and space.
@@ -197,6 +198,8 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
             .collect(),
         bands: None,
         notes: vec![],
+        gains: None,
+        forward: None,
     }
 }
 
@@ -371,6 +374,8 @@ fn one_subsystem_smoothers_equal_plain_rts() {
         p: ps.iter().map(|m| m.as_slice().to_vec()).collect(),
         bands: None,
         notes: vec![],
+        gains: None,
+        forward: None,
     };
     let _ = n;
     let opts = TwoStepOptions::default();
@@ -526,5 +531,109 @@ fn smoothing_on_the_command_line() {
         assert_eq!(out.status.code(), Some(2), "{bad:?}");
         common::one_error_line(&out.stderr);
         assert!(!out_file.exists(), "{bad:?} wrote its output");
+    }
+}
+
+/// `SMALL` with `Q = 0`, no coupling out of the states (`H = 0`, so `A_eff = blkdiag(A)`) and a
+/// rank-one `A`: `T(t+1) = A_eff P(t|t) A_effᵀ` is singular, so the centralized RTS form
+/// cannot run and SPEC §10's fallback must.
+fn singular_prediction() -> Model {
+    model_from(
+        &SMALL
+            .replace(
+                "Q = [[0.01, 0.0], [0.0, 0.02]]",
+                "Q = [[0.0, 0.0], [0.0, 0.0]]",
+            )
+            .replace("H = [[0.1], [0.0]]", "H = [[0.0], [0.0]]")
+            .replace(
+                "A = [[0.8, 0.2], [-0.1, 0.9]]",
+                "A = [[0.8, 0.4], [0.4, 0.2]]",
+            )
+            .replace(
+                "A = [[0.6, 0.3], [0.0, 0.9]]",
+                "A = [[0.6, 0.3], [0.4, 0.2]]",
+            ),
+    )
+}
+
+/// A singular `T(t+1)`: the centralized smoother says so in a note and smooths by the
+/// information form, which still matches the batch estimator (up to the effect of the
+/// loading ε = 1e−9 that keeps `Λ⁻` defined).
+#[test]
+fn centralized_smoother_falls_back_on_a_singular_prediction() {
+    let model = singular_prediction();
+    let run = simulate_run(&model, 7);
+    let batch = batch_estimate(&model, &run.y, &run.u, false);
+    let smoothed = smooth(
+        Box::new(CentralizedSmoother::new(&model, false, 100).unwrap()),
+        &run.y,
+        &run.u,
+    );
+    assert_eq!(smoothed.notes.len(), 1, "{:?}", smoothed.notes);
+    assert!(
+        smoothed.notes[0].contains("information form"),
+        "{}",
+        smoothed.notes[0]
+    );
+    let (gx, gp) = gap(&smoothed, &batch);
+    assert!(gx < 1e-6 && gp < 1e-6, "x {gx:e}, P {gp:e}");
+}
+
+/// `evaluate` runs the covariance pass of the centralized and the joint smoother once
+/// ([`SmootherSchedule`], on `y = 0`) and replays only the means per run: that equals
+/// smoothing the run itself, with the centralized fallback too. (The distributed smoother's
+/// covariances depend on the data through the two-step filter's local moment.)
+#[test]
+fn scheduled_backward_pass_equals_smoothing_each_run() {
+    for model in [model_from(SMALL), singular_prediction()] {
+        let run = simulate_run(&model, 11);
+        let opts = JointOptions::default();
+        type Make<'a> = Box<dyn Fn() -> (Box<dyn Smoother + 'a>, Box<dyn ChainFilter + 'a>) + 'a>;
+        let makers: Vec<(&str, Make)> = vec![
+            (
+                "centralized",
+                Box::new(|| {
+                    (
+                        Box::new(CentralizedSmoother::new(&model, false, 100).unwrap())
+                            as Box<dyn Smoother>,
+                        Box::new(CentralizedFilter::new(&model, false, 100).unwrap())
+                            as Box<dyn ChainFilter>,
+                    )
+                }),
+            ),
+            (
+                "joint",
+                Box::new(|| {
+                    (
+                        Box::new(JointSmoother::new(&model, opts).unwrap()) as Box<dyn Smoother>,
+                        Box::new(JointFilter::new(&model, opts).unwrap()) as Box<dyn ChainFilter>,
+                    )
+                }),
+            ),
+        ];
+        for (name, make) in &makers {
+            let direct = smooth(make().0, &run.y, &run.u);
+            let schedule = SmootherSchedule::new(make().0, &model, &run.u).unwrap();
+            let mut filter = match schedule.forward {
+                Some(opts) => Box::new(JointFilter::new(&model, opts).unwrap()),
+                None => make().1,
+            };
+            let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
+            for (y, u) in run.y.iter().zip(&run.u) {
+                filter.step(y, u).unwrap();
+                x_filt.push(filter.filtered().0.to_vec());
+                x_pred.push(filter.predicted().0.to_vec());
+            }
+            let replayed = Smoothed {
+                x: schedule.smooth_means(&model, &x_filt, &x_pred),
+                p: schedule.p.clone(),
+                bands: None,
+                notes: Vec::new(),
+                gains: None,
+                forward: None,
+            };
+            let (gx, gp) = gap(&replayed, &direct);
+            assert!(gx < 1e-12 && gp < 1e-12, "{name}: x {gx:e}, P {gp:e}");
+        }
     }
 }

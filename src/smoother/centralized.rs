@@ -17,7 +17,7 @@ use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
 use crate::error::Result;
 use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment};
 use crate::model::Model;
-use crate::smoother::{JointSmoother, Smoothed, Smoother};
+use crate::smoother::{BackwardGain, GainView, JointSmoother, MeanPass, Smoothed, Smoother};
 
 /// Largest condition estimate of `T(t+1)` for which the RTS form is used (SPEC §10).
 pub const MAX_CONDITION: f64 = 1e12;
@@ -78,12 +78,14 @@ impl Smoother for CentralizedSmoother<'_> {
         Ok(())
     }
 
-    fn finish(self: Box<Self>) -> Result<Smoothed> {
+    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
-        let mut xs = self.x_filt.clone();
+        let mut xs: Vec<Vec<f64>> = self.x_filt.iter().map(|x| x.as_slice().to_vec()).collect();
         let mut ps = self.p_filt.clone();
+        let mut mean = MeanPass::new(model);
+        let mut gains = Vec::new();
         for k in (0..steps.saturating_sub(1)).rev() {
             let t_next = &self.t_pred[k];
             let chol = Cholesky::new(t_next.clone());
@@ -92,17 +94,29 @@ impl Smoother for CentralizedSmoother<'_> {
                 (d.max() / d.min()).powi(2)
             });
             let Some(chol) = chol.filter(|_| condition <= MAX_CONDITION) else {
-                return self.information_form_fallback(k + 1, condition);
+                return self.information_form_fallback(k + 1, condition, keep_gains);
             };
             // Cᵀ = T⁻¹ A_eff P.
             let gain_tr = chol.solve(&(&self.a_eff[k] * &self.p_filt[k]));
-            let dx = &xs[k + 1] - &self.x_pred[k];
-            xs[k] = &self.x_filt[k] + gain_tr.tr_mul(&dx);
+            let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
+            mean.apply(
+                model,
+                k + 1,
+                GainView::Dense(&gain_tr),
+                self.x_filt[k].as_slice(),
+                self.x_pred[k].as_slice(),
+                &xs_tail[0],
+                &mut xs_head[k],
+            );
             let diff = &ps[k + 1] - t_next;
             let mut p = &self.p_filt[k] + gain_tr.tr_mul(&(diff * &gain_tr));
             p = (&p + p.transpose()) * 0.5;
             ps[k] = p;
+            if keep_gains {
+                gains.push(BackwardGain::Dense(gain_tr));
+            }
         }
+        gains.reverse();
         let size = big_n * n;
         let p = ps
             .iter()
@@ -117,17 +131,24 @@ impl Smoother for CentralizedSmoother<'_> {
             .collect();
         debug_assert!(xs.iter().all(|x| x.len() == size));
         Ok(Smoothed {
-            x: xs.iter().map(|x| x.as_slice().to_vec()).collect(),
+            x: xs,
             p,
             bands: None,
             notes: Vec::new(),
+            gains: keep_gains.then_some(gains),
+            forward: None,
         })
     }
 }
 
 impl CentralizedSmoother<'_> {
     /// Smooths the stored data by the information form at full band (SPEC §10 fallback).
-    fn information_form_fallback(&self, t: usize, condition: f64) -> Result<Smoothed> {
+    fn information_form_fallback(
+        &self,
+        t: usize,
+        condition: f64,
+        keep_gains: bool,
+    ) -> Result<Smoothed> {
         let model = self.model;
         let dropouts = if self.known {
             Dropouts::Known
@@ -135,12 +156,14 @@ impl CentralizedSmoother<'_> {
             Dropouts::Unknown
         };
         let opts = JointOptions::full_band(model, SecondMoment::Lifted, dropouts);
-        let mut joint: Box<dyn Smoother> = Box::new(JointSmoother::new(model, opts)?);
+        let mut joint: Box<dyn Smoother> =
+            Box::new(JointSmoother::new(model, opts)?.loading_as_noise());
         for (y, u) in self.y.iter().zip(&self.u) {
             joint.step(y, u)?;
         }
-        let mut out = joint.finish()?;
+        let mut out = joint.backward(keep_gains)?;
         out.bands = None;
+        out.forward = Some(opts);
         out.notes.push(format!(
             "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (SPEC §10)",
             t + 1,

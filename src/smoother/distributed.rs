@@ -17,7 +17,7 @@ use nalgebra::{Cholesky, DMatrix, DMatrixView};
 use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
 use crate::model::Model;
-use crate::smoother::{Smoothed, Smoother};
+use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
 /// The forward pass of a filter that predicts each subsystem with `x̂⁺ = A x̂ + …`,
 /// `T⁺ = A P Aᵀ + Q`, stored for the per-subsystem RTS pass.
@@ -63,18 +63,15 @@ impl Rts {
         }
     }
 
-    /// One RTS step; false when `T` is not positive definite.
-    #[allow(clippy::too_many_arguments)]
+    /// The covariance half of one RTS step: `C_iᵀ` into `gain_tr` and `P_i(t|T)` into `ps`;
+    /// false when `T` is not positive definite.
     fn step(
         &mut self,
         a: &DMatrix<f64>,
         p: &[f64],
         t_next: &[f64],
-        x_filt: &[f64],
-        x_pred_next: &[f64],
-        xs_next: &[f64],
         ps_next: &[f64],
-        xs: &mut [f64],
+        gain_tr: &mut [f64],
         ps: &mut [f64],
     ) -> bool {
         let n = a.nrows();
@@ -90,13 +87,7 @@ impl Rts {
         self.gain_tr.copy_from(&self.ap);
         chol.solve_mut(&mut self.gain_tr);
         self.t_mat = chol.unpack();
-        for r in 0..n {
-            let mut acc = x_filt[r];
-            for c in 0..n {
-                acc += self.gain_tr[(c, r)] * (xs_next[c] - x_pred_next[c]);
-            }
-            xs[r] = acc;
-        }
+        gain_tr.copy_from_slice(self.gain_tr.as_slice());
         // P(t|T) = P + C (P(t+1|T) − T) Cᵀ.
         for k in 0..n * n {
             self.diff.as_mut_slice()[k] = ps_next[k] - t_next[k];
@@ -128,33 +119,29 @@ impl Smoother for DistributedSmoother<'_> {
         Ok(())
     }
 
-    fn finish(self: Box<Self>) -> Result<Smoothed> {
+    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
         let mut xs = self.x_filt.clone();
         let mut ps = self.p_filt.clone();
         let mut rts = Rts::new(n);
+        let mut mean = MeanPass::new(model);
+        let mut gain = vec![0.0; big_n * n * n];
+        let mut gains = Vec::new();
         for k in (0..steps.saturating_sub(1)).rev() {
             let t = k + 1;
-            let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
             let (ps_head, ps_tail) = ps.split_at_mut(k + 1);
-            let (xs_k, xs_next) = (&mut xs_head[k], &xs_tail[0]);
-            let (ps_k, ps_next) = (&mut ps_head[k], &ps_tail[0]);
             for i in 0..big_n {
-                let (v, b) = (i * n..(i + 1) * n, i * n * n..(i + 1) * n * n);
-                let ok = rts.step(
+                let b = i * n * n..(i + 1) * n * n;
+                if !rts.step(
                     &model.params(t, i + 1).A,
                     &self.p_filt[k][b.clone()],
                     &self.t_pred[k][b.clone()],
-                    &self.x_filt[k][v.clone()],
-                    &self.x_pred[k][v.clone()],
-                    &xs_next[v.clone()],
-                    &ps_next[b.clone()],
-                    &mut xs_k[v],
-                    &mut ps_k[b],
-                );
-                if !ok {
+                    &ps_tail[0][b.clone()],
+                    &mut gain[b.clone()],
+                    &mut ps_head[k][b],
+                ) {
                     return Err(Error::Numerical {
                         t,
                         i: i + 1,
@@ -162,12 +149,28 @@ impl Smoother for DistributedSmoother<'_> {
                     });
                 }
             }
+            let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
+            mean.apply(
+                model,
+                t,
+                GainView::PerSubsystem(&gain),
+                &self.x_filt[k],
+                &self.x_pred[k],
+                &xs_tail[0],
+                &mut xs_head[k],
+            );
+            if keep_gains {
+                gains.push(BackwardGain::PerSubsystem(gain.clone()));
+            }
         }
+        gains.reverse();
         Ok(Smoothed {
             x: xs,
             p: ps,
             bands: None,
             notes: Vec::new(),
+            gains: keep_gains.then_some(gains),
+            forward: None,
         })
     }
 }

@@ -26,9 +26,8 @@ use crate::band::{
 use crate::error::{Error, Result};
 use crate::filter::joint::{band_error, load_diagonal};
 use crate::filter::{ChainFilter, JointFilter, JointOptions};
-use crate::linalg::psd_sqrt;
 use crate::model::Model;
-use crate::smoother::{Smoothed, Smoother};
+use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
 /// The stored forward pass of the joint filter.
 pub struct JointSmoother<'m> {
@@ -40,6 +39,8 @@ pub struct JointSmoother<'m> {
     posterior: Vec<SymBand>,
     /// The `A_eff` band of each step, shared between the steps of a window.
     a_eff: Vec<Arc<GenBand>>,
+    /// Treat the loading `ε` as process noise `Q + ε I` (see [`Self::loading_as_noise`]).
+    loading_as_noise: bool,
 }
 
 impl<'m> JointSmoother<'m> {
@@ -55,7 +56,20 @@ impl<'m> JointSmoother<'m> {
             prior: Vec::new(),
             posterior: Vec::new(),
             a_eff: Vec::new(),
+            loading_as_noise: false,
         })
+    }
+
+    /// At full band with exact `A_eff`, the loaded filter is exactly the filter of the model
+    /// with process noise `Q + ε I` (`Λ⁻ = (T + ε I)⁻¹`). The backward pass then uses that
+    /// model too: `G_i` the roots of `Q_i + ε I` and `Λˢ = P(t|T)⁻¹` unloaded, which is the
+    /// exact smoother of the perturbed model. Loading `Λˢ` instead, as the band-k smoother
+    /// must, is not consistent with `G = 0` when `Q = 0` and `A_eff` is singular: the
+    /// errors grow backwards by about `1/ε` per step. Used by the centralized smoother's
+    /// fallback (SPEC §10).
+    pub fn loading_as_noise(mut self) -> Self {
+        self.loading_as_noise = true;
+        self
     }
 }
 
@@ -78,7 +92,7 @@ impl Smoother for JointSmoother<'_> {
         Ok(())
     }
 
-    fn finish(self: Box<Self>) -> Result<Smoothed> {
+    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);
         let k = self.filter.band();
@@ -92,6 +106,13 @@ impl Smoother for JointSmoother<'_> {
         bands[steps - 1] = cov;
         let mut lam_s = self.posterior[steps - 1].clone();
         let mut ws = Backward::new(model, k);
+        let precision_loading = if self.loading_as_noise {
+            ws.mean = MeanPass::with_extra_noise(model, loading);
+            0.0
+        } else {
+            loading
+        };
+        let mut gains = Vec::new();
         for idx in (0..steps - 1).rev() {
             let t = idx + 1;
             let mut x = vec![0.0; big_n * n];
@@ -110,11 +131,19 @@ impl Smoother for JointSmoother<'_> {
                 &mut band,
             )
             .map_err(|e| smoother_error(t, loading, k, e))?;
-            ws.smoothed_precision(&band, loading, &mut lam_s)
+            if keep_gains {
+                gains.push(BackwardGain::Joint {
+                    factor: Box::new(ws.chol.clone()),
+                    smoothed_precision: Box::new(lam_s.clone()),
+                    a_eff: Arc::clone(&self.a_eff[idx]),
+                });
+            }
+            ws.smoothed_precision(&band, precision_loading, &mut lam_s)
                 .map_err(|e| smoother_error(t, loading, k, e))?;
             xs[idx] = x;
             bands[idx] = band;
         }
+        gains.reverse();
         let p = bands
             .iter()
             .map(|b| {
@@ -128,6 +157,8 @@ impl Smoother for JointSmoother<'_> {
             p,
             bands: Some(bands),
             notes: Vec::new(),
+            gains: keep_gains.then_some(gains),
+            forward: None,
         })
     }
 }
@@ -139,7 +170,8 @@ fn smoother_error(t: usize, loading: f64, k: usize, e: BandError) -> Error {
 /// Scratch of the backward pass, sized for the current `A_eff` half-width `b` (resized only
 /// when `b` changes), and the square roots `G_i` of `Q_i` per parameter set (column-major).
 struct Backward {
-    roots: Vec<Vec<f64>>,
+    /// The mean half of the step (step 4), with the roots `G_i`.
+    mean: MeanPass,
     /// The `b` the buffers below are sized for.
     b: Option<usize>,
     ib: SymBand,
@@ -150,10 +182,6 @@ struct Backward {
     inv: SymBand,
     loaded: SymBand,
     completion: CompletionWorkspace,
-    e: Vec<f64>,
-    v: Vec<f64>,
-    atv: Vec<f64>,
-    rhs: Vec<f64>,
     /// Two `n × n` scratch blocks.
     tmp: Vec<f64>,
     tmp2: Vec<f64>,
@@ -163,11 +191,7 @@ impl Backward {
     fn new(model: &Model, k: usize) -> Self {
         let (n, big_n) = (model.dims.n, model.subsystems);
         Self {
-            roots: model
-                .param_sets()
-                .iter()
-                .map(|p| psd_sqrt(&p.Q).as_slice().to_vec())
-                .collect(),
+            mean: MeanPass::new(model),
             b: None,
             ib: SymBand::zeros(big_n, n, k),
             w: GenBand::zeros(big_n, n, 0),
@@ -177,10 +201,6 @@ impl Backward {
             inv: SymBand::zeros(big_n, 2 * n, 0),
             loaded: SymBand::zeros(big_n, n, k),
             completion: CompletionWorkspace::new(big_n, n, k),
-            e: vec![0.0; big_n * n],
-            v: vec![0.0; big_n * n],
-            atv: vec![0.0; big_n * n],
-            rhs: vec![0.0; big_n * 2 * n],
             tmp: vec![0.0; n * n],
             tmp2: vec![0.0; n * n],
         }
@@ -222,9 +242,8 @@ impl Backward {
         self.prepare(big_n, n, k, b);
         let kappa = self.jm.width();
         let bs = 2 * n;
-        let ids = &model.window(t).ids;
-        let roots = &self.roots;
-        let g = |i: usize| roots[ids[i] as usize].as_slice();
+        let mean = &self.mean;
+        let g = |i: usize| mean.root(model, t, i);
         // 1. I_b = Λˢ(t+1) − Λ⁻(t+1).
         self.ib.copy_band_from(lam_s_next);
         for i in 0..big_n {
@@ -307,22 +326,13 @@ impl Backward {
         // 3. Block-banded Cholesky of 𝒥.
         self.chol.factor(&self.jm)?;
         // 4. Mean: 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e.
-        for ((e, s), p) in self.e.iter_mut().zip(xs_next).zip(x_pred_next) {
-            *e = s - p;
-        }
-        lam_s_next.mul_vec(&self.e, &mut self.v);
-        a.mul_vec_transposed(&self.v, &mut self.atv);
-        for i in 0..big_n {
-            let gi = g(i);
-            for r in 0..n {
-                self.rhs[i * bs + r] = self.atv[i * n + r];
-                self.rhs[i * bs + n + r] = (0..n).map(|c| gi[c + r * n] * self.v[i * n + c]).sum();
-            }
-        }
-        self.chol.solve_in_place(&mut self.rhs);
-        for (q, x) in x_out.iter_mut().enumerate() {
-            *x = x_filt[q] + self.rhs[(q / n) * bs + q % n];
-        }
+        let gain = GainView::Joint {
+            factor: &self.chol,
+            smoothed_precision: lam_s_next,
+            a_eff: a,
+        };
+        self.mean
+            .apply(model, t, gain, x_filt, x_pred_next, xs_next, x_out);
         // 5. Covariance: the x-parts of the band k of 𝒥⁻¹.
         self.chol.selected_inverse(&mut self.inv);
         for i in 0..big_n {

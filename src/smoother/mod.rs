@@ -12,8 +12,14 @@ pub mod centralized;
 pub mod distributed;
 pub mod joint;
 
-use crate::band::SymBand;
+use std::sync::Arc;
+
+use nalgebra::DMatrix;
+
+use crate::band::{BandCholesky, GenBand, SymBand};
 use crate::error::Result;
+use crate::filter::JointOptions;
+use crate::linalg::psd_sqrt;
 use crate::model::Model;
 
 pub use centralized::CentralizedSmoother;
@@ -34,14 +40,249 @@ pub struct Smoothed {
     /// What the user should know (e.g. the centralized smoother fell back to the
     /// information form), printed as warnings.
     pub notes: Vec<String>,
+    /// With [`Smoother::backward`]`(true)`: the gain of each step `t = 1..T−1`.
+    pub gains: Option<Vec<BackwardGain>>,
+    /// Set when the backward pass ran on another forward pass than the smoother's own filter
+    /// (the centralized smoother's fallback): the joint filter with these options, whose
+    /// means the gains belong to, its loading taken as process noise
+    /// ([`JointSmoother::loading_as_noise`]).
+    pub forward: Option<JointOptions>,
 }
 
 /// A smoother: the forward pass, one time step at a time, then the backward pass.
 pub trait Smoother {
     /// Runs the filter on `y(t, ·)`, `u(t, ·)` and stores what the backward pass needs.
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()>;
+    /// Runs the backward pass over the stored steps; with `keep_gains` the result also holds
+    /// the gain of every step (see [`SmootherSchedule`]).
+    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed>;
     /// Runs the backward pass over the stored steps.
-    fn finish(self: Box<Self>) -> Result<Smoothed>;
+    fn finish(self: Box<Self>) -> Result<Smoothed> {
+        self.backward(false)
+    }
+}
+
+/// The gain `L_t` of one backward step, which maps what the later data say about `x(t+1)` to
+/// a correction of `x(t)`:
+///
+/// ```text
+/// x̂(t|T) = x̂(t|t) + L_t (x̂(t+1|T) − x̂(t+1|t))
+/// ```
+///
+/// `L_t = C_t` for the RTS smoothers (block-diagonal for `distributed`); for `joint`,
+/// `L_t e` is the `δ`-part of `𝒥⁻¹ [A_effᵀ; Gᵀ] Λˢ(t+1) e` (SPEC §10 `joint` step 4). In the
+/// unknown-dropout mode `L_t` and `P(t|T)` do not depend on the measurements, so the
+/// covariance pass can run once for many data sets ([`SmootherSchedule`]).
+#[derive(Debug, Clone)]
+pub enum BackwardGain {
+    /// `distributed`: per subsystem `C_iᵀ` (`N` column-major `n × n` blocks).
+    PerSubsystem(Vec<f64>),
+    /// `centralized`: `C_tᵀ` of the whole chain.
+    Dense(DMatrix<f64>),
+    /// `joint`: the Cholesky factor of `𝒥(t)`, `Λˢ(t+1)` and the band of `A_eff(t)`.
+    Joint {
+        factor: Box<BandCholesky>,
+        smoothed_precision: Box<SymBand>,
+        a_eff: Arc<GenBand>,
+    },
+}
+
+/// A [`BackwardGain`] borrowed from a smoother's workspace, so that the backward pass of a
+/// single run applies its gains without copying them.
+#[derive(Clone, Copy)]
+pub enum GainView<'a> {
+    PerSubsystem(&'a [f64]),
+    Dense(&'a DMatrix<f64>),
+    Joint {
+        factor: &'a BandCholesky,
+        smoothed_precision: &'a SymBand,
+        a_eff: &'a GenBand,
+    },
+}
+
+impl BackwardGain {
+    pub fn view(&self) -> GainView<'_> {
+        match self {
+            Self::PerSubsystem(g) => GainView::PerSubsystem(g),
+            Self::Dense(g) => GainView::Dense(g),
+            Self::Joint {
+                factor,
+                smoothed_precision,
+                a_eff,
+            } => GainView::Joint {
+                factor,
+                smoothed_precision,
+                a_eff,
+            },
+        }
+    }
+}
+
+/// The mean half of a backward step, shared by every smoother and by [`SmootherSchedule`]:
+/// `x̂(t|T) = x̂(t|t) + L_t (x̂(t+1|T) − x̂(t+1|t))`. Holds the square roots `G_i` of `Q_i`
+/// per parameter set (column-major) and the scratch of the `joint` solve.
+pub struct MeanPass {
+    roots: Vec<Vec<f64>>,
+    e: Vec<f64>,
+    v: Vec<f64>,
+    atv: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+impl MeanPass {
+    pub fn new(model: &Model) -> Self {
+        Self::with_extra_noise(model, 0.0)
+    }
+
+    /// With the roots of `Q_i + ε I` in place of those of `Q_i`.
+    pub fn with_extra_noise(model: &Model, eps: f64) -> Self {
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        Self {
+            roots: model
+                .param_sets()
+                .iter()
+                .map(|p| {
+                    let q = &p.Q + DMatrix::identity(n, n) * eps;
+                    psd_sqrt(&q).as_slice().to_vec()
+                })
+                .collect(),
+            e: vec![0.0; big_n * n],
+            v: vec![0.0; big_n * n],
+            atv: vec![0.0; big_n * n],
+            rhs: vec![0.0; big_n * 2 * n],
+        }
+    }
+
+    /// `G_i` of subsystem `i` (0-based) at time `t`, column-major `n × n`.
+    pub fn root(&self, model: &Model, t: usize, i: usize) -> &[f64] {
+        &self.roots[model.window(t).ids[i] as usize]
+    }
+
+    /// `x_out = x̂(t|t) + L_t (x̂(t+1|T) − x̂(t+1|t))`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn apply(
+        &mut self,
+        model: &Model,
+        t: usize,
+        gain: GainView,
+        x_filt: &[f64],
+        x_pred_next: &[f64],
+        xs_next: &[f64],
+        x_out: &mut [f64],
+    ) {
+        let (n, big_n) = (model.dims.n, model.subsystems);
+        for ((e, s), p) in self.e.iter_mut().zip(xs_next).zip(x_pred_next) {
+            *e = s - p;
+        }
+        match gain {
+            GainView::PerSubsystem(g) => {
+                for i in 0..big_n {
+                    let gi = &g[i * n * n..(i + 1) * n * n];
+                    let e = &self.e[i * n..(i + 1) * n];
+                    for r in 0..n {
+                        let dx: f64 = (0..n).map(|c| gi[c + r * n] * e[c]).sum();
+                        x_out[i * n + r] = x_filt[i * n + r] + dx;
+                    }
+                }
+            }
+            GainView::Dense(g) => {
+                for (r, x) in x_out.iter_mut().enumerate() {
+                    *x = x_filt[r]
+                        + g.column(r)
+                            .dot(&nalgebra::DVectorView::from_slice(&self.e, big_n * n));
+                }
+            }
+            GainView::Joint {
+                factor,
+                smoothed_precision,
+                a_eff,
+            } => {
+                // 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e (SPEC §10 `joint` step 4).
+                let bs = 2 * n;
+                smoothed_precision.mul_vec(&self.e, &mut self.v);
+                a_eff.mul_vec_transposed(&self.v, &mut self.atv);
+                let ids = &model.window(t).ids;
+                for i in 0..big_n {
+                    let gi = &self.roots[ids[i] as usize];
+                    for r in 0..n {
+                        self.rhs[i * bs + r] = self.atv[i * n + r];
+                        self.rhs[i * bs + n + r] =
+                            (0..n).map(|c| gi[c + r * n] * self.v[i * n + c]).sum();
+                    }
+                }
+                factor.solve_in_place(&mut self.rhs);
+                for (q, x) in x_out.iter_mut().enumerate() {
+                    *x = x_filt[q] + self.rhs[(q / n) * bs + q % n];
+                }
+            }
+        }
+    }
+}
+
+/// The covariance pass of a smoother in the unknown-dropout mode, computed once and replayed
+/// on the means of any number of runs (SPEC §10: "one pass for all runs in `evaluate`"): the
+/// gains `L_t` and the diagonal blocks of `P(t|T)`.
+pub struct SmootherSchedule {
+    gains: Vec<BackwardGain>,
+    /// Per step, the diagonal blocks of `P(t|T)`.
+    pub p: Vec<Vec<f64>>,
+    /// The notes of the covariance pass ([`Smoothed::notes`]).
+    pub notes: Vec<String>,
+    /// The filter whose means the gains belong to, when not the smoother's own
+    /// ([`Smoothed::forward`]).
+    pub forward: Option<JointOptions>,
+}
+
+impl SmootherSchedule {
+    /// Runs `smoother` (built for the unknown-dropout mode) on `y = 0` and the inputs `u`;
+    /// its covariances and gains do not depend on `y`.
+    pub fn new(
+        mut smoother: Box<dyn Smoother + '_>,
+        model: &Model,
+        u: &[Vec<f64>],
+    ) -> Result<Self> {
+        let y = vec![0.0; model.subsystems * model.dims.q];
+        for ut in u {
+            smoother.step(&y, ut)?;
+        }
+        let smoothed = smoother.backward(true)?;
+        Ok(Self {
+            gains: smoothed.gains.expect("kept"),
+            p: smoothed.p,
+            notes: smoothed.notes,
+            forward: smoothed.forward,
+        })
+    }
+
+    /// `x̂(t|T)` for every step from the filter's `x̂(t|t)` (`x_filt[t−1]`) and its
+    /// predictions `x̂(t+1|t)` (`x_pred_next[t−1]`), by the stored gains.
+    pub fn smooth_means(
+        &self,
+        model: &Model,
+        x_filt: &[Vec<f64>],
+        x_pred_next: &[Vec<f64>],
+    ) -> Vec<Vec<f64>> {
+        let steps = x_filt.len();
+        assert_eq!(steps, self.gains.len() + 1, "the schedule's horizon");
+        let mut pass = match self.forward {
+            Some(opts) => MeanPass::with_extra_noise(model, opts.loading_for(model)),
+            None => MeanPass::new(model),
+        };
+        let mut xs = x_filt.to_vec();
+        for k in (0..steps - 1).rev() {
+            let (head, tail) = xs.split_at_mut(k + 1);
+            pass.apply(
+                model,
+                k + 1,
+                self.gains[k].view(),
+                &x_filt[k],
+                &x_pred_next[k],
+                &tail[0],
+                &mut head[k],
+            );
+        }
+        xs
+    }
 }
 
 /// Which smoother, for the memory estimate.
