@@ -279,6 +279,26 @@ def write(results, out_md):
         "state, the writer one batch of formatted rows.",
     ]
 
+    smooth = cases.get("W-smooth", [])
+    if smooth:
+        estimate = env.get("smooth_estimate", "?")
+        ratio = med(smooth, "rss_kb") * 1024 / env.get("smooth_estimate_bytes", float("nan"))
+        lines += [
+            "",
+            "## Smoothing memory on W (issue 12)",
+            "",
+            "`sisfilt estimate --meas W/measurements.csv --smooth --out W/smoothed.csv` (the",
+            "distributed smoother, default threads) against the estimate of SPEC §10 that",
+            f"`sisfilt check` prints for the config ({estimate}): the stored forward pass",
+            "`x̂(t|t)`, `x̂(t+1|t)`, `P(t|t)`, `T(t+1)` and the smoothed output, `T·N·(3n + 3n²)·8`",
+            "bytes.",
+            "",
+            "| wall | peak RSS | §10 estimate | RSS / estimate |",
+            "|---|---|---|---|",
+            f"| {med(smooth, 'wall'):.2f} s | {med(smooth, 'rss_kb') / 1024 ** 2:.2f} GiB "
+            f"| {estimate} | {ratio:.2f} |",
+        ]
+
     cvd = {}
     for name, runs in cases.items():
         if name.startswith("cvd-"):

@@ -142,6 +142,21 @@ for threads in 1 "$THREADS"; do
         --out "$WORK/W/estimates.csv" --timings
 done
 rm -f "$WORK/W/estimates.csv" "$WORK/W/truth.csv"
+# Smoothing stores the forward pass: peak RSS against SPEC §10's estimate (`sisfilt check`).
+log "workload W: estimate --smooth (distributed smoother)"
+measure W-smooth "$THREADS" estimate --meas "$WORK/W/measurements.csv" --smooth \
+    --out "$WORK/W/smoothed.csv"
+rm -f "$WORK/W/smoothed.csv"
+python3 - "$WORK/env.json" "$("$BIN" check "$WORK/W.toml" 2>&1)" <<'EOF'
+import json, re, sys
+env = json.load(open(sys.argv[1]))
+m = re.search(r"smoothing memory for T = \d+: distributed ([\d.]+) (GiB|MiB|KiB)", sys.argv[2])
+if m:
+    env["smooth_estimate"] = f"{m.group(1)} {m.group(2)}"
+    scale = {"GiB": 1 << 30, "MiB": 1 << 20, "KiB": 1 << 10}[m.group(2)]
+    env["smooth_estimate_bytes"] = float(m.group(1)) * scale
+json.dump(env, open(sys.argv[1], "w"))
+EOF
 
 # --- peak memory against T ---------------------------------------------------------------
 for steps in 100 10000; do
