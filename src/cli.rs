@@ -213,7 +213,7 @@ pub struct EstimateArgs {
     #[arg(long)]
     pub meas: PathBuf,
     /// Inputs CSV (`t,i,u1..um`); default: inputs.csv beside a simulated --meas, else the
-    /// config's [input].
+    /// config's input table.
     #[arg(long)]
     pub inputs: Option<PathBuf>,
     /// Output file, or - for standard output.

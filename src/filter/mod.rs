@@ -1,6 +1,6 @@
 //! Step 2 and the filters built on it: the local Nahi update of SPEC §3
 //! ([`nahi`]) and the two-step distributed filter that alternates it with the chain solve
-//! ([`two_step`]).
+//! ([`two_step`](mod@two_step)).
 
 pub mod centralized;
 pub mod joint;

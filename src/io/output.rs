@@ -208,7 +208,7 @@ impl Write for Output {
     }
 }
 
-/// Buffered standard output that is only flushed by [`HeldStdout::finish`]: dropped on an
+/// Buffered standard output that is only flushed by `HeldStdout::finish`: dropped on an
 /// error path, it discards what it still holds, so a failed run writes at most what had
 /// already overflowed the 1 MiB buffer (nothing, for most outputs).
 pub struct HeldStdout(Option<BufWriter<std::io::Stdout>>);
