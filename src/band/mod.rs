@@ -293,6 +293,14 @@ impl GenBand {
         &self.data[i * len..(i + 1) * len]
     }
 
+    /// Block row `i` as a mutable strip; see [`GenBand::row_strip`]. Keep the slots outside
+    /// the matrix zero.
+    #[inline]
+    pub fn row_strip_mut(&mut self, i: usize) -> &mut [f64] {
+        let len = (2 * self.b + 1) * self.bs * self.bs;
+        &mut self.data[i * len..(i + 1) * len]
+    }
+
     /// Sets every entry to zero.
     pub fn fill_zero(&mut self) {
         self.data.fill(0.0);
