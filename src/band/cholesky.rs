@@ -19,9 +19,11 @@ pub struct BandCholesky {
     l: Vec<f64>,
     /// `L_jj⁻¹` at `j bs²` (lower triangular).
     l_diag_inv: Vec<f64>,
-    /// Selected inversion scratch: `E_{j+d, j}ᵀ` with `E_{j+d, j} = L_{j+d, j} L_jj⁻¹`,
-    /// `d = 1..=k`, at `(d−1) bs²`.
-    e: Vec<f64>,
+    /// Block column `j` of `E = L blkdiag(L_jj)⁻¹`, transposed, for the selected inversion:
+    /// `E_{j+d, j}ᵀ = L_jj⁻ᵀ L_{j+d, j}ᵀ`, `d = 1..=k`, at `(j k + d − 1) bs²`. Written by the
+    /// factorisation, so that the backward sweep reads one contiguous stream instead of a
+    /// column of `L` (one block from each of `k` rows).
+    et: Vec<f64>,
     /// Two scratch blocks.
     tmp: Vec<f64>,
     /// Window of whole rows of `P` for the selected inversion of wide factors (sized on
@@ -40,7 +42,7 @@ impl BandCholesky {
             k,
             l: vec![0.0; nb * (k + 1) * bb],
             l_diag_inv: vec![0.0; nb * bb],
-            e: vec![0.0; k * bb],
+            et: vec![0.0; nb * k * bb],
             tmp: vec![0.0; 2 * bb],
             rows: Vec::new(),
         }
@@ -101,7 +103,8 @@ impl BandCholesky {
 
     /// SPEC §9 update step 5: `x ← Λ⁻¹ x` (`x.len() == nb·bs`) by forward substitution
     /// `y_i = L_ii⁻¹ (x_i − Σ_{j=i−k}^{i−1} L_{i,j} y_j)` and back substitution
-    /// `z_i = L_ii⁻ᵀ (y_i − Σ_{l=i+1}^{i+k} L_{l,i}ᵀ z_l)`.
+    /// `z_i = L_ii⁻ᵀ (y_i − Σ_{l=i+1}^{i+k} L_{l,i}ᵀ z_l)` (the sum accumulated row by row of
+    /// `L`, as it is stored).
     pub fn solve_in_place(&self, x: &mut [f64]) {
         assert_eq!(x.len(), self.nb * self.bs, "right-hand side length");
         specialise!(self.bs, solve_body(self, x))
@@ -131,7 +134,7 @@ fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandE
     let simd = simd_available();
     let bb = bs * bs;
     let off = |i: usize, j: usize| (i * (k + 1) + k + j - i) * bb;
-    let (l, l_diag_inv) = (&mut f.l, &mut f.l_diag_inv);
+    let (l, l_diag_inv, et) = (&mut f.l, &mut f.l_diag_inv, &mut f.et);
     let (pivot, s) = f.tmp.split_at_mut(bb);
     for i in 0..nb {
         // Row i is found left to right; every sum over p is one product of two row segments.
@@ -154,17 +157,13 @@ fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandE
                     -1.0,
                 );
             }
+            let inv = &l_diag_inv[j * bb..(j + 1) * bb];
             let lij = &mut l[off(i, j)..off(i, j) + bb];
             lij.fill(0.0);
-            block_mul_add_body(
-                bs,
-                lij,
-                1.0,
-                s,
-                false,
-                &l_diag_inv[j * bb..(j + 1) * bb],
-                true,
-            );
+            block_mul_add_body(bs, lij, 1.0, s, false, inv, true);
+            let etij = &mut et[(j * k + i - j - 1) * bb..(j * k + i - j) * bb];
+            etij.fill(0.0);
+            block_mul_add_body(bs, etij, 1.0, inv, true, lij, true);
         }
         // Pivot: Λ_ii − Σ_p L_{i,p} L_{i,p}ᵀ, Cholesky in place.
         pivot.copy_from_slice(a.block(i, 0));
@@ -208,20 +207,11 @@ fn solve_body(bs: usize, f: &BandCholesky, x: &mut [f64]) {
             xi[r] = t;
         }
     }
+    // Back substitution by rows of L (the storage order): once z_i is final, its terms
+    // L_{i,j}ᵀ z_i leave the entries j = i−k..i−1 still to be solved.
     for i in (0..nb).rev() {
-        let (head, done) = x.split_at_mut((i + 1) * bs);
-        let xi = &mut head[i * bs..];
-        for l in i + 1..=(i + k).min(nb - 1) {
-            let lli = f.l_block(l, i);
-            let zl = &done[(l - i - 1) * bs..(l - i) * bs];
-            for c in 0..bs {
-                let mut t = 0.0;
-                for r in 0..bs {
-                    t += lli[r + c * bs] * zl[r];
-                }
-                xi[c] -= t;
-            }
-        }
+        let (head, tail) = x.split_at_mut(i * bs);
+        let xi = &mut tail[..bs];
         // xi ← L_ii⁻ᵀ xi, upper triangular: top-down keeps the entries still needed.
         let inv = &f.l_diag_inv[i * bb..(i + 1) * bb];
         for r in 0..bs {
@@ -230,6 +220,17 @@ fn solve_body(bs: usize, f: &BandCholesky, x: &mut [f64]) {
                 t += inv[c + r * bs] * xi[c];
             }
             xi[r] = t;
+        }
+        for j in i.saturating_sub(k)..i {
+            let lij = f.l_block(i, j);
+            let xj = &mut head[j * bs..(j + 1) * bs];
+            for c in 0..bs {
+                let mut t = 0.0;
+                for r in 0..bs {
+                    t += lij[r + c * bs] * xi[r];
+                }
+                xj[c] -= t;
+            }
         }
     }
 }
@@ -244,18 +245,6 @@ fn selected_inverse_body(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
         selected_inverse_rows(bs, f, out)
     } else {
         selected_inverse_band(bs, f, out)
-    }
-}
-
-/// `Eᵀ_{l,j} = L_jj⁻ᵀ L_{l,j}ᵀ` for `l = j+1..=j+nl` into `et` (block `l − j − 1`).
-#[inline(always)]
-fn scaled_column(bs: usize, f: &BandCholesky, j: usize, nl: usize, et: &mut [f64]) {
-    let bb = bs * bs;
-    let inv = &f.l_diag_inv[j * bb..(j + 1) * bb];
-    for (d, etl) in et[..nl * bb].chunks_exact_mut(bb).enumerate() {
-        etl.fill(0.0);
-        let o = f.l_off(j + 1 + d, j);
-        block_mul_add_body(bs, etl, 1.0, inv, true, &f.l[o..o + bb], true);
     }
 }
 
@@ -279,13 +268,11 @@ fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     let simd = simd_available();
     let bb = bs * bs;
     let strip = (w + 1) * bb;
-    let mut e = std::mem::take(&mut f.e);
     for j in (0..nb).rev() {
         let lmax = (j + k).min(nb - 1);
         let nl = lmax - j;
         let inv = &f.l_diag_inv[j * bb..(j + 1) * bb];
-        scaled_column(bs, f, j, nl, &mut e);
-        let et = &e[..nl * bb];
+        let et = &f.et[j * k * bb..(j * k + nl) * bb];
         let (head, rows_below) = out.data_mut().split_at_mut((j + 1) * strip);
         let row_j = &mut head[j * strip..];
         let imax = (j + w).min(nb - 1);
@@ -324,7 +311,6 @@ fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
         let (diag, offd) = row_j.split_at_mut(bb);
         diagonal_block(bs, simd, inv, offd, et, diag);
     }
-    f.e = e;
 }
 
 /// Selected inversion through whole rows of `P`: row `l` is kept as the strip
@@ -346,7 +332,6 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     if rows.len() < cap * fw {
         rows.resize(cap * fw, 0.0);
     }
-    let mut e = std::mem::take(&mut f.e);
     let mut base = nb - cap;
     for j in (0..nb).rev() {
         let lmax = (j + k).min(nb - 1);
@@ -358,8 +343,7 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
             base = new_base;
         }
         let inv = &f.l_diag_inv[j * bb..(j + 1) * bb];
-        scaled_column(bs, f, j, nl, &mut e);
-        let et = &e[..nl * bb];
+        let et = &f.et[j * k * bb..(j * k + nl) * bb];
         let slot = j - base;
         let (head, below) = rows.split_at_mut((slot + 1) * fw);
         // P_{j, j..j+w}: w + 1 blocks.
@@ -384,7 +368,6 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
             }
         }
     }
-    f.e = e;
     f.rows = rows;
 }
 

@@ -58,7 +58,7 @@ mod sandwich;
 pub use cholesky::BandCholesky;
 pub use completion::{CompletionWorkspace, completion_precision};
 pub use kernels::gemm_acc;
-pub use products::{gen_t_times_gen, sym_times_gen};
+pub use products::{diag_t_times_gen, gen_t_times_gen, sym_times_gen};
 pub use sandwich::{SandwichWorkspace, sandwich};
 
 use nalgebra::DMatrix;

@@ -88,6 +88,43 @@ fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) 
     }
 }
 
+/// `out = Dᵀ W` for a block-diagonal `D = blkdiag(D_i)` (`d(i)` the column-major block `D_i`)
+/// and a general band `W`; `out` has the shape of `W`. Row `i` is `D_iᵀ` times row `i` of `W`,
+/// one block times a strip.
+pub fn diag_t_times_gen<'a>(d: impl Fn(usize) -> &'a [f64], w: &GenBand, out: &mut GenBand) {
+    assert_eq!(
+        (out.nb(), out.bs(), out.half_width()),
+        (w.nb(), w.bs(), w.half_width()),
+        "out shape"
+    );
+    let bs = w.bs();
+    specialise!(bs, diag_t_times_gen_body(&d, w, out))
+}
+
+#[inline(always)]
+fn diag_t_times_gen_body<'a>(
+    bs: usize,
+    d: &impl Fn(usize) -> &'a [f64],
+    w: &GenBand,
+    out: &mut GenBand,
+) {
+    let bb = bs * bs;
+    let mut x = [0.0; 16];
+    let mut x_big = Vec::new();
+    let x = if bb <= 16 {
+        &mut x[..bb]
+    } else {
+        x_big.resize(bb, 0.0);
+        &mut x_big[..]
+    };
+    for i in 0..w.nb() {
+        copy_block(bs, d(i), true, x);
+        let row = out.row_strip_mut(i);
+        row.fill(0.0);
+        block_strip_acc_body(bs, row, x, w.row_strip(i));
+    }
+}
+
 /// `x = blk` or `blkᵀ` (column-major `bs × bs`).
 #[inline(always)]
 fn copy_block(bs: usize, blk: &[f64], transpose: bool, x: &mut [f64]) {
@@ -188,6 +225,19 @@ mod tests {
                 assert!(
                     rel(&w.to_dense(), &(&sd * &ad)) < 1e-12,
                     "S A: {nb} {bs} {k} {b}"
+                );
+                let dg: Vec<DMatrix<f64>> = (0..nb)
+                    .map(|_| DMatrix::from_fn(bs, bs, |_, _| rng.random_range(-1.0..1.0)))
+                    .collect();
+                let mut z = GenBand::zeros(nb, bs, k + b);
+                diag_t_times_gen(|i| dg[i].as_slice(), &w, &mut z);
+                let mut dd = DMatrix::zeros(n, n);
+                for (i, blk) in dg.iter().enumerate() {
+                    dd.view_mut((i * bs, i * bs), (bs, bs)).copy_from(blk);
+                }
+                assert!(
+                    rel(&z.to_dense(), &(dd.transpose() * &sd * &ad)) < 1e-12,
+                    "Dᵀ S A: {nb} {bs} {k} {b}"
                 );
                 let mut m = SymBand::zeros(nb, bs, k + 2 * b);
                 gen_t_times_gen(&a, &w, &mut m);
