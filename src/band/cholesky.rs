@@ -14,8 +14,8 @@ pub struct BandCholesky {
     nb: usize,
     bs: usize,
     k: usize,
-    /// Block row `i` of `L` as a strip: `L_{i, i−k+d}`, `d = 0..=k`, at `(i (k+1) + d) bs²`,
-    /// column-major; slots with `i − k + d < 0` are zero.
+    /// Block row `i` of `L` as a strip: `L_{i, i−k+d}`, `d = 0..=k`, at
+    /// `i·padded_len(k+1, bs²) + d bs²`, column-major; slots with `i − k + d < 0` are zero.
     l: Vec<f64>,
     /// `L_jj⁻¹` at `j bs²` (lower triangular).
     l_diag_inv: Vec<f64>,
@@ -40,7 +40,7 @@ impl BandCholesky {
             nb,
             bs,
             k,
-            l: vec![0.0; nb * (k + 1) * bb],
+            l: vec![0.0; nb * padded_len(k + 1, bb)],
             l_diag_inv: vec![0.0; nb * bb],
             et: vec![0.0; nb * k * bb],
             tmp: vec![0.0; 2 * bb],
@@ -70,7 +70,8 @@ impl BandCholesky {
     #[inline]
     fn l_off(&self, i: usize, j: usize) -> usize {
         debug_assert!(j <= i && i - j <= self.k && i < self.nb);
-        (i * (self.k + 1) + self.k + j - i) * self.bs * self.bs
+        let bb = self.bs * self.bs;
+        i * padded_len(self.k + 1, bb) + (self.k + j - i) * bb
     }
 
     /// Block `L_{i,j}` (`0 ≤ i − j ≤ k`) of the factor, column-major.
@@ -128,25 +129,47 @@ impl BandCholesky {
         specialise!(self.bs, selected_inverse_body(self, out))
     }
 }
+/// Length of a strip of `blocks` blocks of `bb` entries, plus one block of padding when the
+/// step from one strip to the next minus one block (the stride of a walk down a block
+/// column) is a multiple of 1 KiB: such a walk would map every block to the same few cache
+/// sets (κ = 32, bs = 4 gives exactly 4 KiB).
+#[inline]
+fn padded_len(blocks: usize, bb: usize) -> usize {
+    let len = blocks * bb;
+    if blocks > 1 && ((len - bb) * size_of::<f64>()) % 1024 == 0 {
+        len + bb
+    } else {
+        len
+    }
+}
+
 #[inline(always)]
 fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandError> {
     let (nb, k) = (f.nb, f.k);
     let simd = simd_available();
     let bb = bs * bs;
-    let off = |i: usize, j: usize| (i * (k + 1) + k + j - i) * bb;
+    let row_len = padded_len(k + 1, bb);
+    let off = |i: usize, j: usize| i * row_len + (k + j - i) * bb;
     let (l, l_diag_inv, et) = (&mut f.l, &mut f.l_diag_inv, &mut f.et);
     let (pivot, s) = f.tmp.split_at_mut(bb);
     for i in 0..nb {
         // Row i is found left to right; every sum over p is one product of two row segments.
         let j0 = i.saturating_sub(k);
-        for j in j0..i {
-            // Λ_{i,j} = (stored Λ_{j,i})ᵀ.
-            let aji = a.block(j, i - j);
+        // Block row i of `a` (Λ_{i,i+d}, read in storage order) goes transposed into the
+        // slots L_{i+d,i} of the rows below, which hold Λ_{i+d,i} until row i+d is found:
+        // reading column i of `a` instead (one block from each of k rows, a new page each)
+        // costs a cache miss per block.
+        for d in 1..=k.min(nb - 1 - i) {
+            let aid = a.block(i, d);
+            let dst = &mut l[off(i + d, i)..off(i + d, i) + bb];
             for c in 0..bs {
                 for r in 0..bs {
-                    s[r + c * bs] = aji[c + r * bs];
+                    dst[r + c * bs] = aid[c + r * bs];
                 }
             }
+        }
+        for j in j0..i {
+            s.copy_from_slice(&l[off(i, j)..off(i, j) + bb]);
             if j > j0 {
                 nt_acc_fast(
                     simd,
@@ -326,7 +349,7 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     let w = out.width();
     let simd = simd_available();
     let bb = bs * bs;
-    let fw = (2 * w + 1) * bb;
+    let fw = padded_len(2 * w + 1, bb);
     let cap = (4 * (k + 1)).min(nb);
     let mut rows = std::mem::take(&mut f.rows);
     if rows.len() < cap * fw {
@@ -347,7 +370,7 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
         let slot = j - base;
         let (head, below) = rows.split_at_mut((slot + 1) * fw);
         // P_{j, j..j+w}: w + 1 blocks.
-        let upper = &mut head[slot * fw + w * bb..];
+        let upper = &mut head[slot * fw + w * bb..slot * fw + (2 * w + 1) * bb];
         let (diag, offd) = upper.split_at_mut(bb);
         if nl > 0 {
             tn_multi_neg(simd, bs, offd, et, &below[w * bb..], fw - bb);
