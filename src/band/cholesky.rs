@@ -19,6 +19,8 @@ pub struct BandCholesky {
     l: Vec<f64>,
     /// `L_jj⁻¹` at `j bs²` (lower triangular).
     l_diag_inv: Vec<f64>,
+    /// `U_j = L_jj⁻ᵀ L_jj⁻¹`, the inverse of pivot `j`, at `j bs²`.
+    pivot_inv: Vec<f64>,
     /// Block column `j` of `E = L blkdiag(L_jj)⁻¹`, transposed, for the selected inversion:
     /// `E_{j+d, j}ᵀ = L_jj⁻ᵀ L_{j+d, j}ᵀ`, `d = 1..=k`, at `(j k + d − 1) bs²`. Written by the
     /// factorisation, so that the backward sweep reads one contiguous stream instead of a
@@ -42,6 +44,7 @@ impl BandCholesky {
             k,
             l: vec![0.0; nb * padded_len(k + 1, bb)],
             l_diag_inv: vec![0.0; nb * bb],
+            pivot_inv: vec![0.0; nb * bb],
             et: vec![0.0; nb * k * bb],
             tmp: vec![0.0; 2 * bb],
             rows: Vec::new(),
@@ -151,6 +154,7 @@ fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandE
     let row_len = padded_len(k + 1, bb);
     let off = |i: usize, j: usize| i * row_len + (k + j - i) * bb;
     let (l, l_diag_inv, et) = (&mut f.l, &mut f.l_diag_inv, &mut f.et);
+    let pivot_inv = &mut f.pivot_inv;
     let (pivot, s) = f.tmp.split_at_mut(bb);
     for i in 0..nb {
         // Row i is found left to right; every sum over p is one product of two row segments.
@@ -180,13 +184,13 @@ fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandE
                     -1.0,
                 );
             }
-            let inv = &l_diag_inv[j * bb..(j + 1) * bb];
+            // L_{i,j} = s L_jj⁻ᵀ and E_{i,j}ᵀ = (L_{i,j} L_jj⁻¹)ᵀ = U_j sᵀ, both X Yᵀ products.
             let lij = &mut l[off(i, j)..off(i, j) + bb];
             lij.fill(0.0);
-            block_mul_add_body(bs, lij, 1.0, s, false, inv, true);
+            nt_acc_fast(simd, bs, lij, s, &l_diag_inv[j * bb..(j + 1) * bb], 1.0);
             let etij = &mut et[(j * k + i - j - 1) * bb..(j * k + i - j) * bb];
             etij.fill(0.0);
-            block_mul_add_body(bs, etij, 1.0, inv, true, lij, true);
+            nt_acc_fast(simd, bs, etij, &pivot_inv[j * bb..(j + 1) * bb], s, 1.0);
         }
         // Pivot: Λ_ii − Σ_p L_{i,p} L_{i,p}ᵀ, Cholesky in place.
         pivot.copy_from_slice(a.block(i, 0));
@@ -198,7 +202,11 @@ fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandE
             return Err(BandError::PivotNotPositiveDefinite { block: i });
         }
         l[off(i, i)..off(i, i) + bb].copy_from_slice(pivot);
-        tri_lower_inv(bs, pivot, &mut l_diag_inv[i * bb..(i + 1) * bb]);
+        let inv = &mut l_diag_inv[i * bb..(i + 1) * bb];
+        tri_lower_inv(bs, pivot, inv);
+        let u = &mut pivot_inv[i * bb..(i + 1) * bb];
+        u.fill(0.0);
+        block_mul_add_body(bs, u, 1.0, inv, true, inv, false);
     }
     Ok(())
 }
@@ -274,9 +282,8 @@ fn selected_inverse_body(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
 /// Diagonal block `P_jj = L_jj⁻ᵀ L_jj⁻¹ − Σ_l P_{j,l} E_{l,j}` (symmetrised) from the
 /// blocks `P_{j,j+1..j+nl}` (`offd`, a strip) and `Eᵀ` (`et`): one `X Yᵀ` product.
 #[inline(always)]
-fn diagonal_block(bs: usize, simd: bool, inv: &[f64], offd: &[f64], et: &[f64], diag: &mut [f64]) {
-    diag.fill(0.0);
-    block_mul_add_body(bs, diag, 1.0, inv, true, inv, false);
+fn diagonal_block(bs: usize, simd: bool, u: &[f64], offd: &[f64], et: &[f64], diag: &mut [f64]) {
+    diag.copy_from_slice(u);
     if !et.is_empty() {
         nt_acc_fast(simd, bs, diag, &offd[..et.len()], et, -1.0);
     }
@@ -294,7 +301,7 @@ fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     for j in (0..nb).rev() {
         let lmax = (j + k).min(nb - 1);
         let nl = lmax - j;
-        let inv = &f.l_diag_inv[j * bb..(j + 1) * bb];
+        let u = &f.pivot_inv[j * bb..(j + 1) * bb];
         let et = &f.et[j * k * bb..(j * k + nl) * bb];
         let (head, rows_below) = out.data_mut().split_at_mut((j + 1) * strip);
         let row_j = &mut head[j * strip..];
@@ -332,7 +339,7 @@ fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
             }
         }
         let (diag, offd) = row_j.split_at_mut(bb);
-        diagonal_block(bs, simd, inv, offd, et, diag);
+        diagonal_block(bs, simd, u, offd, et, diag);
     }
 }
 
@@ -365,7 +372,7 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
             rows.copy_within(0..nl * fw, (j + 1 - new_base) * fw);
             base = new_base;
         }
-        let inv = &f.l_diag_inv[j * bb..(j + 1) * bb];
+        let u = &f.pivot_inv[j * bb..(j + 1) * bb];
         let et = &f.et[j * k * bb..(j * k + nl) * bb];
         let slot = j - base;
         let (head, below) = rows.split_at_mut((slot + 1) * fw);
@@ -378,7 +385,7 @@ fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
             // The last block row: P_{j,i} = 0 for i > j.
             offd.fill(0.0);
         }
-        diagonal_block(bs, simd, inv, offd, et, diag);
+        diagonal_block(bs, simd, u, offd, et, diag);
         out.row_strip_mut(j).copy_from_slice(upper);
         // Lower blocks P_{j+d, j} = P_{j, j+d}ᵀ of the rows below, at slot w − d.
         for d in 1..k.min(nb - j) {
