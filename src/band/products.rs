@@ -1,7 +1,7 @@
 //! Banded products for the information-form smoother (SPEC §10 step 2) and band–vector
 //! products.
 
-use super::kernels::block_strip_acc_body;
+use super::kernels::{block_strip_acc, simd_available};
 use super::{GenBand, SymBand};
 
 /// Block `(l, m)` of a symmetric band and whether it is stored transposed; `None` outside.
@@ -27,6 +27,7 @@ pub fn sym_times_gen(s: &SymBand, a: &GenBand, out: &mut GenBand) {
 fn sym_times_gen_body(bs: usize, s: &SymBand, a: &GenBand, out: &mut GenBand) {
     let (nb, k, b) = (a.nb(), s.width(), a.half_width());
     let (hw, bb) = (out.half_width(), bs * bs);
+    let simd = simd_available();
     let mut x = [0.0; 16];
     let mut x_big = Vec::new();
     let x = if bb <= 16 {
@@ -45,7 +46,7 @@ fn sym_times_gen_body(bs: usize, s: &SymBand, a: &GenBand, out: &mut GenBand) {
             let (j0, j1) = (m.saturating_sub(b), (m + b).min(nb - 1));
             let src = &a.row_strip(m)[(j0 + b - m) * bb..(j1 + 1 + b - m) * bb];
             let dst = &mut row[(j0 + hw - l) * bb..(j1 + 1 + hw - l) * bb];
-            block_strip_acc_body(bs, dst, x, src);
+            block_strip_acc(simd, bs, dst, x, src);
         }
     }
 }
@@ -62,6 +63,7 @@ pub fn gen_t_times_gen(a: &GenBand, w: &GenBand, out: &mut SymBand) {
 fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) {
     let (nb, b, hw) = (a.nb(), a.half_width(), w.half_width());
     let (width, bb) = (out.width(), bs * bs);
+    let simd = simd_available();
     let mut x = [0.0; 16];
     let mut x_big = Vec::new();
     let x = if bb <= 16 {
@@ -83,7 +85,7 @@ fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) 
             copy_block(bs, a.block(l, i), true, x);
             let src = &w.row_strip(l)[(j0 + hw - l) * bb..(j1 + 1 + hw - l) * bb];
             let dst = &mut row[(j0 - i) * bb..(j1 + 1 - i) * bb];
-            block_strip_acc_body(bs, dst, x, src);
+            block_strip_acc(simd, bs, dst, x, src);
         }
     }
 }
@@ -109,6 +111,7 @@ fn diag_t_times_gen_body<'a>(
     out: &mut GenBand,
 ) {
     let bb = bs * bs;
+    let simd = simd_available();
     let mut x = [0.0; 16];
     let mut x_big = Vec::new();
     let x = if bb <= 16 {
@@ -121,7 +124,7 @@ fn diag_t_times_gen_body<'a>(
         copy_block(bs, d(i), true, x);
         let row = out.row_strip_mut(i);
         row.fill(0.0);
-        block_strip_acc_body(bs, row, x, w.row_strip(i));
+        block_strip_acc(simd, bs, row, x, w.row_strip(i));
     }
 }
 
