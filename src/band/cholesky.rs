@@ -426,14 +426,34 @@ mod tests {
     }
 
     /// Long chains so that the row window of the selected inversion slides (`nb > 4(k+1)`),
-    /// with both the row-window and the band path, against the dense inverse.
+    /// with both the row-window and the band path, and with padded strips (`bs = 4, k = 8`:
+    /// rows of `L` and, for `w = 8, 24`, of the window), against the dense inverse and solve.
     #[test]
     fn selected_inverse_on_long_chains_matches_dense_inverse() {
-        for (nb, bs, k) in [(30, 4, 3), (30, 2, 3), (23, 4, 5), (40, 1, 4), (25, 5, 3)] {
+        let shapes = [
+            (30, 4, 3),
+            (30, 2, 3),
+            (23, 4, 5),
+            (40, 1, 4),
+            (25, 5, 3),
+            (40, 4, 8),
+        ];
+        assert!(padded_len(9, 16) > 9 * 16 && padded_len(17, 16) > 17 * 16);
+        for (nb, bs, k) in shapes {
             let a = band_spd(nb, bs, k);
             let inv = a.clone().try_inverse().unwrap();
             let mut chol = BandCholesky::new(nb, bs, k);
             chol.factor(&SymBand::from_dense(&a, bs, k)).unwrap();
+            let rhs: Vec<f64> = (0..nb * bs).map(|e| (0.7 * e as f64).sin()).collect();
+            let mut x = rhs.clone();
+            chol.solve_in_place(&mut x);
+            let expect = &inv * nalgebra::DVector::from_column_slice(&rhs);
+            let err = (nalgebra::DVector::from_vec(x) - &expect).amax();
+            assert!(
+                err < 1e-12 * expect.amax(),
+                "solve {:?}: {err:e}",
+                (nb, bs, k)
+            );
             for w in [k, k + 2, 3 * k] {
                 let mut out = SymBand::zeros(nb, bs, w);
                 out.data_mut().fill(f64::NAN);
