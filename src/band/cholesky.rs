@@ -66,8 +66,8 @@ impl BandCholesky {
         self.k
     }
 
-    /// Kept for the API: [`BandCholesky::selected_inverse`] writes into its output directly
-    /// and needs no buffer that depends on the output width.
+    /// Kept for the API: [`BandCholesky::selected_inverse`] sizes its window of rows (which
+    /// depends on the output width) on first use and reuses it afterwards.
     pub fn reserve_width(&mut self, _w: usize) {}
 
     #[inline]
@@ -121,8 +121,10 @@ impl BandCholesky {
     /// `P_{j,i} = − Σ_{l=j+1}^{j+k} E_{l,j}ᵀ P_{l,i}`, `i = j+1..=j+w`, then
     /// `P_jj = L_jj⁻ᵀ L_jj⁻¹ − Σ_{l=j+1}^{j+k} P_{j,l} E_{l,j}` (symmetrised).
     ///
-    /// Every `P_{l,i}` needed lies in block rows `> j` of the band `w`, already computed; the
-    /// output itself is the sliding window. Cost `≈ 2 w k bs³` per block row.
+    /// Every `P_{l,i}` needed lies in block rows `> j` of the band `w`, already computed. When
+    /// few of them lie below the diagonal (`k ≪ w`, the filter) the output itself is the
+    /// sliding window; otherwise (`k = w`, the smoother's `𝒥`) a window of whole rows of `P`
+    /// makes each block row one product of `k` strips. Cost `≈ 2 w k bs³` per block row.
     pub fn selected_inverse(&mut self, out: &mut SymBand) {
         assert_eq!((out.nb(), out.bs()), (self.nb, self.bs), "out shape");
         assert!(
@@ -132,6 +134,7 @@ impl BandCholesky {
         specialise!(self.bs, selected_inverse_body(self, out))
     }
 }
+
 /// Length of a strip of `blocks` blocks of `bb` entries, plus one block of padding when the
 /// step from one strip to the next minus one block (the stride of a walk down a block
 /// column) is a multiple of 1 KiB: such a walk would map every block to the same few cache
