@@ -3,12 +3,15 @@
 //! subsystem-steps per second. Groups:
 //! - `joint_filter`: N = 10, 30, 10², 10³, 10⁴ (time per element flat means linear in N), beside the
 //!   two-step filter on the same chain, and the centralized filter for N ≤ 10²;
-//! - `joint_smoother`: forward and backward pass, N = 10², 10³ (its ratio to the filter).
+//! - `joint_smoother`: forward and backward pass, N = 10², 10³, 10⁴ (its ratio to the filter
+//!   and its exponent in N; at N = 10⁴ a run takes seconds, so its ten samples take a minute).
 //!
 //! Inputs are simulated once per size, outside the timed routine. Run with
 //! `RAYON_NUM_THREADS=1` for one-core figures (the joint filter itself is sequential).
 
-use criterion::{BatchSize, BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use criterion::{
+    BatchSize, BenchmarkId, Criterion, SamplingMode, Throughput, criterion_group, criterion_main,
+};
 use sisfilt::config::ConfigSource;
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, JointFilter, JointOptions, TwoStepOptions, two_step,
@@ -83,10 +86,13 @@ fn joint_filter(c: &mut Criterion) {
 fn joint_smoother(c: &mut Criterion) {
     let mut g = c.benchmark_group("joint_smoother");
     g.sample_size(10);
-    for big_n in [100, 1000] {
+    for big_n in [100, 1000, 10_000] {
         let model = chain(big_n);
         let (ys, us) = data(&model);
         g.throughput(Throughput::Elements((big_n * STEPS) as u64));
+        if big_n >= 10_000 {
+            g.sampling_mode(SamplingMode::Flat);
+        }
         g.bench_with_input(BenchmarkId::new("joint-smoother", big_n), &big_n, |b, _| {
             b.iter_batched(
                 || Box::new(JointSmoother::new(&model, JointOptions::default()).unwrap()),

@@ -72,15 +72,21 @@ pub fn simd_available() -> bool {
     }
 }
 
-/// [`nt_acc`] for long strips: with `simd` (from [`simd_available`]) and `bs = 2` it runs an
-/// AVX2/FMA kernel, otherwise the portable one.
+/// [`nt_acc`] for long strips: with `simd` (from [`simd_available`]) and `bs = 2` or `4` it
+/// runs an AVX2/FMA kernel, otherwise the portable one.
 #[inline]
 pub fn nt_acc_fast(simd: bool, bs: usize, c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
     #[cfg(target_arch = "x86_64")]
-    if simd && bs == 2 {
-        assert!(x.len() == y.len() && x.len() % 2 == 0 && c.len() == 4);
+    if simd && (bs == 2 || bs == 4) {
+        assert!(x.len() == y.len() && x.len() % bs == 0 && c.len() == bs * bs);
         // SAFETY: `simd` certifies AVX2 and FMA (see `simd_available`); lengths checked above.
-        unsafe { avx2::nt_acc_2(c, x, y, sign) };
+        unsafe {
+            if bs == 2 {
+                avx2::nt_acc_2(c, x, y, sign)
+            } else {
+                avx2::nt_acc_4(c, x, y, sign)
+            }
+        };
         return;
     }
     let _ = simd;
@@ -89,7 +95,8 @@ pub fn nt_acc_fast(simd: bool, bs: usize, c: &mut [f64], x: &[f64], y: &[f64], s
 
 /// `out[:, c] = −Σ_{q<nq} M_qᵀ S_q[:, c]` for `bs × bs` blocks `M_q = mt[q bs²..]` given
 /// transposed (`mt` holds `M_qᵀ`, column-major) and strips `S_q = base[q·stride..]` of the
-/// same length as `out`; `nq = mt.len() / bs²`. With `simd` and `bs = 2` an AVX2/FMA kernel.
+/// same length as `out`; `nq = mt.len() / bs²`. With `simd` and `bs = 2` or `4` an AVX2/FMA
+/// kernel.
 #[inline]
 pub fn tn_multi_neg(
     simd: bool,
@@ -109,9 +116,16 @@ pub fn tn_multi_neg(
         "strips out of range"
     );
     #[cfg(target_arch = "x86_64")]
-    if simd && bs == 2 {
+    if simd && (bs == 2 || bs == 4) {
+        assert_eq!(out.len() % bs, 0, "whole columns");
         // SAFETY: `simd` certifies AVX2 and FMA; the strip range is checked above.
-        unsafe { avx2::tn_multi_neg_2(out, mt, base, stride) };
+        unsafe {
+            if bs == 2 {
+                avx2::tn_multi_neg_2(out, mt, base, stride)
+            } else {
+                avx2::tn_multi_neg_4(out, mt, base, stride)
+            }
+        };
         return;
     }
     let _ = simd;
@@ -198,6 +212,174 @@ mod avx2 {
         c[3] += sign * hi[1];
     }
 
+    /// `C += sign · X Yᵀ` for `4 × n` strips and a `4 × 4` block: one column of `X` per
+    /// 256-bit vector, `C[:, s] += X[:, c] · Y[s, c]` (broadcast), even and odd columns in two
+    /// sets of four accumulators so that eight independent chains hide the FMA latency.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `x.len() == y.len()` is a multiple of 4 and
+    /// `c.len() == 16`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn nt_acc_4(c: &mut [f64], x: &[f64], y: &[f64], sign: f64) {
+        let ncols = x.len() / 4;
+        let (xp, yp, cp) = (x.as_ptr(), y.as_ptr(), c.as_mut_ptr());
+        let mut even = [_mm256_setzero_pd(); 4];
+        let mut odd = [_mm256_setzero_pd(); 4];
+        let mut col = 0;
+        // SAFETY (all accesses): column indices stay below `ncols`, `c` holds 16 entries.
+        unsafe {
+            while col + 2 <= ncols {
+                let x0 = _mm256_loadu_pd(xp.add(4 * col));
+                let x1 = _mm256_loadu_pd(xp.add(4 * col + 4));
+                for s in 0..4 {
+                    let y0 = _mm256_broadcast_sd(&*yp.add(4 * col + s));
+                    let y1 = _mm256_broadcast_sd(&*yp.add(4 * col + 4 + s));
+                    even[s] = _mm256_fmadd_pd(x0, y0, even[s]);
+                    odd[s] = _mm256_fmadd_pd(x1, y1, odd[s]);
+                }
+                col += 2;
+            }
+            if col < ncols {
+                let x0 = _mm256_loadu_pd(xp.add(4 * col));
+                for s in 0..4 {
+                    let y0 = _mm256_broadcast_sd(&*yp.add(4 * col + s));
+                    even[s] = _mm256_fmadd_pd(x0, y0, even[s]);
+                }
+            }
+            let sv = _mm256_set1_pd(sign);
+            for s in 0..4 {
+                let sum = _mm256_add_pd(even[s], odd[s]);
+                let old = _mm256_loadu_pd(cp.add(4 * s));
+                _mm256_storeu_pd(cp.add(4 * s), _mm256_fmadd_pd(sv, sum, old));
+            }
+        }
+    }
+
+    /// [`super::tn_multi_neg`] for `bs = 4`: `out[:, c] = −Σ_q X_q S_q[:, c]` with the four
+    /// columns of `X_q` (`mt` block `q`) in registers, four output columns at a time, each
+    /// with two accumulators (even and odd terms), eight independent chains.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `mt.len()` is a positive multiple of 16, `out.len()`
+    /// a multiple of 4 and `base.len() ≥ (mt.len()/16 − 1)·stride + out.len()`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn tn_multi_neg_4(out: &mut [f64], mt: &[f64], base: &[f64], stride: usize) {
+        let (ncols, nq) = (out.len() / 4, mt.len() / 16);
+        let (op, bp, mp) = (out.as_mut_ptr(), base.as_ptr(), mt.as_ptr());
+        let mut c = 0;
+        // SAFETY (all accesses): indices are below the lengths stated in the contract.
+        unsafe {
+            while c + 4 <= ncols {
+                let mut acc0 = [_mm256_setzero_pd(); 4];
+                let mut acc1 = [_mm256_setzero_pd(); 4];
+                for q in 0..nq {
+                    let m = mp.add(16 * q);
+                    let (m0, m1) = (_mm256_loadu_pd(m), _mm256_loadu_pd(m.add(4)));
+                    let (m2, m3) = (_mm256_loadu_pd(m.add(8)), _mm256_loadu_pd(m.add(12)));
+                    let s = bp.add(q * stride + 4 * c);
+                    for u in 0..4 {
+                        let su = s.add(4 * u);
+                        acc0[u] = _mm256_fmadd_pd(m0, _mm256_broadcast_sd(&*su), acc0[u]);
+                        acc1[u] = _mm256_fmadd_pd(m1, _mm256_broadcast_sd(&*su.add(1)), acc1[u]);
+                        acc0[u] = _mm256_fmadd_pd(m2, _mm256_broadcast_sd(&*su.add(2)), acc0[u]);
+                        acc1[u] = _mm256_fmadd_pd(m3, _mm256_broadcast_sd(&*su.add(3)), acc1[u]);
+                    }
+                }
+                for u in 0..4 {
+                    let sum = _mm256_add_pd(acc0[u], acc1[u]);
+                    _mm256_storeu_pd(op.add(4 * (c + u)), _mm256_sub_pd(_mm256_setzero_pd(), sum));
+                }
+                c += 4;
+            }
+            while c < ncols {
+                let (mut acc0, mut acc1) = (_mm256_setzero_pd(), _mm256_setzero_pd());
+                for q in 0..nq {
+                    let m = mp.add(16 * q);
+                    let s = bp.add(q * stride + 4 * c);
+                    acc0 = _mm256_fmadd_pd(_mm256_loadu_pd(m), _mm256_broadcast_sd(&*s), acc0);
+                    acc1 = _mm256_fmadd_pd(
+                        _mm256_loadu_pd(m.add(4)),
+                        _mm256_broadcast_sd(&*s.add(1)),
+                        acc1,
+                    );
+                    acc0 = _mm256_fmadd_pd(
+                        _mm256_loadu_pd(m.add(8)),
+                        _mm256_broadcast_sd(&*s.add(2)),
+                        acc0,
+                    );
+                    acc1 = _mm256_fmadd_pd(
+                        _mm256_loadu_pd(m.add(12)),
+                        _mm256_broadcast_sd(&*s.add(3)),
+                        acc1,
+                    );
+                }
+                let sum = _mm256_add_pd(acc0, acc1);
+                _mm256_storeu_pd(op.add(4 * c), _mm256_sub_pd(_mm256_setzero_pd(), sum));
+                c += 1;
+            }
+        }
+    }
+
+    /// [`super::block_strip_acc`] for `bs = 2`: two columns per vector
+    /// `v = [s₀(c), s₁(c), s₀(c+1), s₁(c+1)]`,
+    /// `out += [x₀₀ x₁₀ x₀₀ x₁₀]·dup_even(v) + [x₀₁ x₁₁ x₀₁ x₁₁]·dup_odd(v)`.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `out.len() == s.len()` is even, `x.len() == 4`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn block_strip_acc_2(out: &mut [f64], x: &[f64], s: &[f64]) {
+        let n = out.len();
+        let (op, sp, xp) = (out.as_mut_ptr(), s.as_ptr(), x.as_ptr());
+        let mut c = 0;
+        // SAFETY (all accesses): indices are below the lengths stated in the contract.
+        unsafe {
+            let (x0, x1) = (_mm_loadu_pd(xp), _mm_loadu_pd(xp.add(2)));
+            let (x0, x1) = (_mm256_set_m128d(x0, x0), _mm256_set_m128d(x1, x1));
+            while c + 4 <= n {
+                let v = _mm256_loadu_pd(sp.add(c));
+                let o = _mm256_loadu_pd(op.add(c));
+                let o = _mm256_fmadd_pd(x0, _mm256_movedup_pd(v), o);
+                let o = _mm256_fmadd_pd(x1, _mm256_permute_pd::<0b1111>(v), o);
+                _mm256_storeu_pd(op.add(c), o);
+                c += 4;
+            }
+            if c < n {
+                let (s0, s1) = (*sp.add(c), *sp.add(c + 1));
+                *op.add(c) += *xp * s0 + *xp.add(2) * s1;
+                *op.add(c + 1) += *xp.add(1) * s0 + *xp.add(3) * s1;
+            }
+        }
+    }
+
+    /// [`super::block_strip_acc`] for `bs = 4`: the columns of `X` in registers, one column
+    /// of `out` per vector, `out[:, c] += Σ_t X[:, t] s_t(c)` (broadcast).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; `out.len() == s.len()` is a multiple of 4,
+    /// `x.len() == 16`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn block_strip_acc_4(out: &mut [f64], x: &[f64], s: &[f64]) {
+        let ncols = out.len() / 4;
+        let (op, sp, xp) = (out.as_mut_ptr(), s.as_ptr(), x.as_ptr());
+        // SAFETY (all accesses): indices are below the lengths stated in the contract.
+        unsafe {
+            let (x0, x1) = (_mm256_loadu_pd(xp), _mm256_loadu_pd(xp.add(4)));
+            let (x2, x3) = (_mm256_loadu_pd(xp.add(8)), _mm256_loadu_pd(xp.add(12)));
+            for c in 0..ncols {
+                let sc = sp.add(4 * c);
+                let a = _mm256_fmadd_pd(
+                    x0,
+                    _mm256_broadcast_sd(&*sc),
+                    _mm256_loadu_pd(op.add(4 * c)),
+                );
+                let b = _mm256_mul_pd(x1, _mm256_broadcast_sd(&*sc.add(1)));
+                let a = _mm256_fmadd_pd(x2, _mm256_broadcast_sd(&*sc.add(2)), a);
+                let b = _mm256_fmadd_pd(x3, _mm256_broadcast_sd(&*sc.add(3)), b);
+                _mm256_storeu_pd(op.add(4 * c), _mm256_add_pd(a, b));
+            }
+        }
+    }
+
     /// [`super::tn_multi_neg`] for `bs = 2`: per pair of columns
     /// `v = [s₀(c), s₁(c), s₀(c+1), s₁(c+1)]`,
     /// `out −= [m₀₀ m₁₀ m₀₀ m₁₀]·dup_even(v) + [m₀₁ m₁₁ m₀₁ m₁₁]·dup_odd(v)` (with `m = Mᵀ`).
@@ -235,6 +417,41 @@ mod avx2 {
                 }
                 *op.add(c) = -o0;
                 *op.add(c + 1) = -o1;
+            }
+        }
+    }
+}
+
+/// `out += X S` for a `bs × bs` block `X` (column-major) and strips `S`, `out` of equal length:
+/// one block times a block-row segment, the step of the band products. With `simd` and
+/// `bs = 2` or `4` an AVX2/FMA kernel.
+#[inline]
+pub fn block_strip_acc(simd: bool, bs: usize, out: &mut [f64], x: &[f64], s: &[f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if simd && (bs == 2 || bs == 4) {
+        assert!(out.len() == s.len() && out.len() % bs == 0 && x.len() == bs * bs);
+        // SAFETY: `simd` certifies AVX2 and FMA; lengths checked above.
+        unsafe {
+            if bs == 2 {
+                avx2::block_strip_acc_2(out, x, s)
+            } else {
+                avx2::block_strip_acc_4(out, x, s)
+            }
+        };
+        return;
+    }
+    let _ = simd;
+    specialise!(bs, block_strip_acc_body(out, x, s))
+}
+
+#[inline(always)]
+pub(super) fn block_strip_acc_body(bs: usize, out: &mut [f64], x: &[f64], s: &[f64]) {
+    debug_assert_eq!(out.len(), s.len());
+    for (oc, sc) in out.chunks_exact_mut(bs).zip(s.chunks_exact(bs)) {
+        for t in 0..bs {
+            let st = sc[t];
+            for r in 0..bs {
+                oc[r] += x[r + t * bs] * st;
             }
         }
     }
@@ -380,7 +597,7 @@ mod tests {
     fn nt_acc_fast_matches_dense_for_every_length() {
         for (simd, bs) in [false, simd_available()]
             .into_iter()
-            .flat_map(|s| (1..=3).map(move |b| (s, b)))
+            .flat_map(|s| (1..=5).map(move |b| (s, b)))
         {
             for ncols in 0..=21 {
                 let x = DMatrix::from_fn(bs, ncols, |r, c| (r as f64 - 0.3 * c as f64).sin());
@@ -401,7 +618,7 @@ mod tests {
             .flat_map(|s| (1..=5).map(move |b| (s, b)))
         {
             for nq in 0..=3 {
-                for ncols in [1, 2, 3, 8, 13] {
+                for ncols in [1, 2, 3, 4, 5, 7, 8, 13] {
                     let stride = ncols * bs + 3;
                     let base: Vec<f64> = (0..nq * stride + ncols * bs)
                         .map(|e| (0.37 * e as f64).sin())
@@ -428,6 +645,26 @@ mod tests {
                         "bs {bs} nq {nq} ncols {ncols}"
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn block_strip_acc_matches_dense() {
+        for (simd, bs) in [false, simd_available()]
+            .into_iter()
+            .flat_map(|s| (1..=5).map(move |b| (s, b)))
+        {
+            for ncols in [0, 1, 2, 3, 4, 5, 9] {
+                let s = DMatrix::from_fn(bs, ncols * bs, |r, c| (r as f64 - 0.3 * c as f64).sin());
+                let o0 = DMatrix::from_fn(bs, ncols * bs, |r, c| (0.5 * r as f64 + c as f64).cos());
+                let x = mat(bs, 7);
+                let mut o = o0.clone();
+                block_strip_acc(simd, bs, o.as_mut_slice(), x.as_slice(), s.as_slice());
+                assert!(
+                    (o - (&o0 + &x * &s)).amax() < 1e-13,
+                    "bs {bs}, {ncols} blocks"
+                );
             }
         }
     }

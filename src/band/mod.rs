@@ -58,7 +58,7 @@ mod sandwich;
 pub use cholesky::BandCholesky;
 pub use completion::{CompletionWorkspace, completion_precision};
 pub use kernels::gemm_acc;
-pub use products::{gen_t_times_gen, sym_times_gen};
+pub use products::{diag_t_times_gen, gen_t_times_gen, sym_times_gen};
 pub use sandwich::{SandwichWorkspace, sandwich};
 
 use nalgebra::DMatrix;
@@ -291,6 +291,14 @@ impl GenBand {
     pub fn row_strip(&self, i: usize) -> &[f64] {
         let len = (2 * self.b + 1) * self.bs * self.bs;
         &self.data[i * len..(i + 1) * len]
+    }
+
+    /// Block row `i` as a mutable strip; see [`GenBand::row_strip`]. Keep the slots outside
+    /// the matrix zero.
+    #[inline]
+    pub fn row_strip_mut(&mut self, i: usize) -> &mut [f64] {
+        let len = (2 * self.b + 1) * self.bs * self.bs;
+        &mut self.data[i * len..(i + 1) * len]
     }
 
     /// Sets every entry to zero.

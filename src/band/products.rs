@@ -1,7 +1,7 @@
 //! Banded products for the information-form smoother (SPEC §10 step 2) and band–vector
 //! products.
 
-use super::kernels::gemm_acc;
+use super::kernels::{block_strip_acc, simd_available};
 use super::{GenBand, SymBand};
 
 /// Block `(l, m)` of a symmetric band and whether it is stored transposed; `None` outside.
@@ -15,40 +15,130 @@ pub(crate) fn sym_block(p: &SymBand, l: usize, m: usize) -> Option<(&[f64], bool
 }
 
 /// `out = S A` for a symmetric band `S` (width `k`) and a general band `A` (half-width `b`);
-/// `out` has half-width `min(k + b, nb − 1)`.
+/// `out` has half-width `min(k + b, nb − 1)`. Row `l` of the result is `Σ_m S_{l,m} A_{m,·}`:
+/// each term is one block times a contiguous segment of block row `m` of `A`.
 pub fn sym_times_gen(s: &SymBand, a: &GenBand, out: &mut GenBand) {
-    let (nb, bs, k, b) = (a.nb(), a.bs(), s.width(), a.half_width());
-    let hw = out.half_width();
-    debug_assert!(hw >= (k + b).min(nb - 1));
+    let bs = a.bs();
+    debug_assert!(out.half_width() >= (s.width() + a.half_width()).min(a.nb() - 1));
+    specialise!(bs, sym_times_gen_body(s, a, out))
+}
+
+#[inline(always)]
+fn sym_times_gen_body(bs: usize, s: &SymBand, a: &GenBand, out: &mut GenBand) {
+    let (nb, k, b) = (a.nb(), s.width(), a.half_width());
+    let (hw, bb) = (out.half_width(), bs * bs);
+    let simd = simd_available();
+    let mut x = [0.0; 16];
+    let mut x_big = Vec::new();
+    let x = if bb <= 16 {
+        &mut x[..bb]
+    } else {
+        x_big.resize(bb, 0.0);
+        &mut x_big[..]
+    };
     out.fill_zero();
     for l in 0..nb {
-        for j in l.saturating_sub(hw)..=(l + hw).min(nb - 1) {
-            let blk = out.block_mut(l, j);
-            let lo = l.saturating_sub(k).max(j.saturating_sub(b));
-            let hi = (l + k).min(j + b).min(nb - 1);
-            for m in lo..=hi {
-                if let Some((slm, tr)) = sym_block(s, l, m) {
-                    gemm_acc(blk, 1.0, slm, tr, a.block(m, j), false, bs);
-                }
-            }
+        let row = out.row_strip_mut(l);
+        for m in l.saturating_sub(k)..=(l + k).min(nb - 1) {
+            let (slm, tr) = sym_block(s, l, m).expect("inside the band");
+            copy_block(bs, slm, tr, x);
+            // Columns j = m−b..=m+b of A's row m; they lie within out's row l (|l − j| ≤ k + b).
+            let (j0, j1) = (m.saturating_sub(b), (m + b).min(nb - 1));
+            let src = &a.row_strip(m)[(j0 + b - m) * bb..(j1 + 1 + b - m) * bb];
+            let dst = &mut row[(j0 + hw - l) * bb..(j1 + 1 + hw - l) * bb];
+            block_strip_acc(simd, bs, dst, x, src);
         }
     }
 }
 
 /// `out = band(Aᵀ W)` for general bands `A` (half-width `b`) and `W`, when the product is
-/// symmetric (as `Aᵀ S A` is): the blocks `0 ≤ j − i ≤ out.width()`.
+/// symmetric (as `Aᵀ S A` is): the blocks `0 ≤ j − i ≤ out.width()`. Row `i` of the result is
+/// `Σ_l A_{l,i}ᵀ W_{l,·}`: each term is one block times a contiguous segment of row `l` of `W`.
 pub fn gen_t_times_gen(a: &GenBand, w: &GenBand, out: &mut SymBand) {
-    let (nb, bs, b, hw) = (a.nb(), a.bs(), a.half_width(), w.half_width());
+    let bs = a.bs();
+    specialise!(bs, gen_t_times_gen_body(a, w, out))
+}
+
+#[inline(always)]
+fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) {
+    let (nb, b, hw) = (a.nb(), a.half_width(), w.half_width());
+    let (width, bb) = (out.width(), bs * bs);
+    let simd = simd_available();
+    let mut x = [0.0; 16];
+    let mut x_big = Vec::new();
+    let x = if bb <= 16 {
+        &mut x[..bb]
+    } else {
+        x_big.resize(bb, 0.0);
+        &mut x_big[..]
+    };
     out.fill_zero();
     for i in 0..nb {
-        for j in i..=(i + out.width()).min(nb - 1) {
-            let blk = out.block_mut(i, j - i);
-            let lo = i.saturating_sub(b).max(j.saturating_sub(hw));
-            let hi = (i + b).min(j + hw).min(nb - 1);
-            for l in lo..=hi {
-                gemm_acc(blk, 1.0, a.block(l, i), true, w.block(l, j), false, bs);
+        let row = out.row_strip_mut(i);
+        for l in i.saturating_sub(b)..=(i + b).min(nb - 1) {
+            // Columns j = max(i, l − hw)..=min(i + width, l + hw) of W's row l.
+            let j0 = i.max(l.saturating_sub(hw));
+            let j1 = (i + width).min(l + hw).min(nb - 1);
+            if j0 > j1 {
+                continue;
+            }
+            copy_block(bs, a.block(l, i), true, x);
+            let src = &w.row_strip(l)[(j0 + hw - l) * bb..(j1 + 1 + hw - l) * bb];
+            let dst = &mut row[(j0 - i) * bb..(j1 + 1 - i) * bb];
+            block_strip_acc(simd, bs, dst, x, src);
+        }
+    }
+}
+
+/// `out = Dᵀ W` for a block-diagonal `D = blkdiag(D_i)` (`d(i)` the column-major block `D_i`)
+/// and a general band `W`; `out` has the shape of `W`. Row `i` is `D_iᵀ` times row `i` of `W`,
+/// one block times a strip.
+pub fn diag_t_times_gen<'a>(d: impl Fn(usize) -> &'a [f64], w: &GenBand, out: &mut GenBand) {
+    assert_eq!(
+        (out.nb(), out.bs(), out.half_width()),
+        (w.nb(), w.bs(), w.half_width()),
+        "out shape"
+    );
+    let bs = w.bs();
+    specialise!(bs, diag_t_times_gen_body(&d, w, out))
+}
+
+#[inline(always)]
+fn diag_t_times_gen_body<'a>(
+    bs: usize,
+    d: &impl Fn(usize) -> &'a [f64],
+    w: &GenBand,
+    out: &mut GenBand,
+) {
+    let bb = bs * bs;
+    let simd = simd_available();
+    let mut x = [0.0; 16];
+    let mut x_big = Vec::new();
+    let x = if bb <= 16 {
+        &mut x[..bb]
+    } else {
+        x_big.resize(bb, 0.0);
+        &mut x_big[..]
+    };
+    for i in 0..w.nb() {
+        copy_block(bs, d(i), true, x);
+        let row = out.row_strip_mut(i);
+        row.fill(0.0);
+        block_strip_acc(simd, bs, row, x, w.row_strip(i));
+    }
+}
+
+/// `x = blk` or `blkᵀ` (column-major `bs × bs`).
+#[inline(always)]
+fn copy_block(bs: usize, blk: &[f64], transpose: bool, x: &mut [f64]) {
+    if transpose {
+        for c in 0..bs {
+            for r in 0..bs {
+                x[r + c * bs] = blk[c + r * bs];
             }
         }
+    } else {
+        x.copy_from_slice(blk);
     }
 }
 
@@ -116,6 +206,7 @@ mod tests {
             }
         }
         v.push((5, 4, 2));
+        v.push((4, 5, 1));
         v
     }
 
@@ -137,6 +228,19 @@ mod tests {
                 assert!(
                     rel(&w.to_dense(), &(&sd * &ad)) < 1e-12,
                     "S A: {nb} {bs} {k} {b}"
+                );
+                let dg: Vec<DMatrix<f64>> = (0..nb)
+                    .map(|_| DMatrix::from_fn(bs, bs, |_, _| rng.random_range(-1.0..1.0)))
+                    .collect();
+                let mut z = GenBand::zeros(nb, bs, k + b);
+                diag_t_times_gen(|i| dg[i].as_slice(), &w, &mut z);
+                let mut dd = DMatrix::zeros(n, n);
+                for (i, blk) in dg.iter().enumerate() {
+                    dd.view_mut((i * bs, i * bs), (bs, bs)).copy_from(blk);
+                }
+                assert!(
+                    rel(&z.to_dense(), &(dd.transpose() * &sd * &ad)) < 1e-12,
+                    "Dᵀ S A: {nb} {bs} {k} {b}"
                 );
                 let mut m = SymBand::zeros(nb, bs, k + 2 * b);
                 gen_t_times_gen(&a, &w, &mut m);

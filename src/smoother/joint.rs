@@ -20,8 +20,8 @@
 use std::sync::Arc;
 
 use crate::band::{
-    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision, gemm_acc,
-    gen_t_times_gen, sym_times_gen,
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
+    diag_t_times_gen, gemm_acc, gen_t_times_gen, sym_times_gen,
 };
 use crate::error::{Error, Result};
 use crate::filter::joint::{band_error, load_diagonal};
@@ -176,6 +176,8 @@ struct Backward {
     b: Option<usize>,
     ib: SymBand,
     w: GenBand,
+    /// `Z = Gᵀ W` (half-width of `W`): the `ξ–δ` blocks of `𝒥`.
+    z: GenBand,
     m: SymBand,
     jm: SymBand,
     chol: BandCholesky,
@@ -195,6 +197,7 @@ impl Backward {
             b: None,
             ib: SymBand::zeros(big_n, n, k),
             w: GenBand::zeros(big_n, n, 0),
+            z: GenBand::zeros(big_n, n, 0),
             m: SymBand::zeros(big_n, n, 0),
             jm: SymBand::zeros(big_n, 2 * n, 0),
             chol: BandCholesky::new(big_n, 2 * n, 0),
@@ -213,6 +216,7 @@ impl Backward {
         }
         let kappa = (k + 2 * b).min(nb - 1);
         self.w = GenBand::zeros(nb, n, k + b);
+        self.z = GenBand::zeros(nb, n, k + b);
         self.m = SymBand::zeros(nb, n, kappa);
         self.jm = SymBand::zeros(nb, 2 * n, kappa);
         self.chol = BandCholesky::new(nb, 2 * n, kappa);
@@ -254,9 +258,11 @@ impl Backward {
                 }
             }
         }
-        // 2. W = I_b A_eff and M = A_effᵀ I_b A_eff, then 𝒥 block by block.
+        // 2. W = I_b A_eff, M = A_effᵀ I_b A_eff and Z = Gᵀ W, then 𝒥 block by block:
+        //    [Λ⁺ + M, A_effᵀ I_b G; Gᵀ I_b A_eff, I + Gᵀ I_b G] with (A_effᵀ I_b G)_ij = Z_jiᵀ.
         sym_times_gen(&self.ib, a, &mut self.w);
         gen_t_times_gen(a, &self.w, &mut self.m);
+        diag_t_times_gen(g, &self.w, &mut self.z);
         let hw = self.w.half_width();
         for i in 0..big_n {
             for d in 0..=kappa.min(big_n - 1 - i) {
@@ -266,33 +272,23 @@ impl Backward {
                 // Top left: Λ⁺_ij + M_ij.
                 let m_ij = self.m.block(i, d);
                 for c in 0..n {
-                    for r in 0..n {
-                        let mut v = m_ij[r + c * n];
-                        if d <= k {
-                            v += lam_post.block(i, d)[r + c * n];
+                    blk[c * bs..c * bs + n].copy_from_slice(&m_ij[c * n..(c + 1) * n]);
+                }
+                if d <= k {
+                    let lp = lam_post.block(i, d);
+                    for c in 0..n {
+                        for r in 0..n {
+                            blk[r + c * bs] += lp[r + c * n];
                         }
-                        blk[r + c * bs] = v;
                     }
                 }
                 if d <= hw {
-                    // Top right: (A_effᵀ I_b)_ij G_j = W(j, i)ᵀ G_j.
-                    self.tmp.fill(0.0);
-                    gemm_acc(&mut self.tmp, 1.0, self.w.block(j, i), true, g(j), false, n);
-                    // Bottom left: G_iᵀ W(i, j).
-                    self.tmp2.fill(0.0);
-                    gemm_acc(
-                        &mut self.tmp2,
-                        1.0,
-                        g(i),
-                        true,
-                        self.w.block(i, j),
-                        false,
-                        n,
-                    );
+                    // Top right Z_jiᵀ, bottom left Z_ij.
+                    let (z_ji, z_ij) = (self.z.block(j, i), self.z.block(i, j));
                     for c in 0..n {
                         for r in 0..n {
-                            blk[r + (n + c) * bs] = self.tmp[r + c * n];
-                            blk[(n + r) + c * bs] = self.tmp2[r + c * n];
+                            blk[r + (n + c) * bs] = z_ji[c + r * n];
+                            blk[(n + r) + c * bs] = z_ij[r + c * n];
                         }
                     }
                 }
