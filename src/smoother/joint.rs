@@ -98,36 +98,45 @@ impl Smoother for JointSmoother<'_> {
         let k = self.filter.band();
         let loading = self.filter.loading();
         let steps = self.x_filt.len();
-        let mut cov = SymBand::zeros(big_n, n, k);
-        cov.copy_band_from(self.filter.covariance_band(false));
-        let mut xs = vec![Vec::new(); steps];
-        let mut bands = vec![SymBand::zeros(big_n, n, k); steps];
-        xs[steps - 1] = self.x_filt[steps - 1].clone();
-        bands[steps - 1] = cov;
-        let mut lam_s = self.posterior[steps - 1].clone();
+        let JointSmoother {
+            filter,
+            x_pred,
+            x_filt,
+            mut prior,
+            posterior,
+            a_eff,
+            loading_as_noise,
+            ..
+        } = *self;
+        let mut xs = vec![vec![0.0; big_n * n]; steps];
+        xs[steps - 1].copy_from_slice(&x_filt[steps - 1]);
+        let mut lam_s = posterior[steps - 1].clone();
         let mut ws = Backward::new(model, k);
-        let precision_loading = if self.loading_as_noise {
+        let precision_loading = if loading_as_noise {
             ws.mean = MeanPass::with_extra_noise(model, loading);
             0.0
         } else {
             loading
         };
         let mut gains = Vec::new();
+        // The band of P(t|T) is written into a scratch band that then trades places with
+        // Λ⁻(t+1), which is no longer needed: after the pass, prior[t] holds P(t−1|T) for
+        // t ≥ 1, so the output takes no memory beyond the stored forward pass.
+        let mut band = SymBand::zeros(big_n, n, k);
         for idx in (0..steps - 1).rev() {
             let t = idx + 1;
-            let mut x = vec![0.0; big_n * n];
-            let mut band = SymBand::zeros(big_n, n, k);
+            let (xs_head, xs_tail) = xs.split_at_mut(idx + 1);
             ws.step(
                 model,
                 t,
-                &self.a_eff[idx],
-                &self.posterior[idx],
-                &self.prior[idx + 1],
+                &a_eff[idx],
+                &posterior[idx],
+                &prior[idx + 1],
                 &lam_s,
-                &self.x_filt[idx],
-                &self.x_pred[idx + 1],
-                &xs[idx + 1],
-                &mut x,
+                &x_filt[idx],
+                &x_pred[idx + 1],
+                &xs_tail[0],
+                &mut xs_head[idx],
                 &mut band,
             )
             .map_err(|e| smoother_error(t, loading, k, e))?;
@@ -135,15 +144,18 @@ impl Smoother for JointSmoother<'_> {
                 gains.push(BackwardGain::Joint {
                     factor: Box::new(ws.chol.clone()),
                     smoothed_precision: Box::new(lam_s.clone()),
-                    a_eff: Arc::clone(&self.a_eff[idx]),
+                    a_eff: Arc::clone(&a_eff[idx]),
                 });
             }
             ws.smoothed_precision(&band, precision_loading, &mut lam_s)
                 .map_err(|e| smoother_error(t, loading, k, e))?;
-            xs[idx] = x;
-            bands[idx] = band;
+            std::mem::swap(&mut band, &mut prior[idx + 1]);
         }
         gains.reverse();
+        // prior[0] (Λ⁻(1)) was never needed: it becomes the band of P(T|T).
+        let mut bands = prior;
+        bands[0].copy_band_from(filter.covariance_band(false));
+        bands.rotate_left(1);
         let p = bands
             .iter()
             .map(|b| {

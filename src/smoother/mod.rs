@@ -305,10 +305,10 @@ pub fn memory_bytes(model: &Model, kind: SmootherKind, steps: usize) -> u64 {
     let forward = match kind {
         // x̂(t|t), x̂(t+1|t), P(t|t), T(t+1).
         SmootherKind::Distributed => steps * big_n * (2 * n + 2 * n * n) * 8,
-        // x̂(t|t), x̂(t|t−1), Λ⁻, Λ⁺ and the output band.
+        // x̂(t|t), x̂(t|t−1), Λ⁻ and Λ⁺; the output band takes the place of Λ⁻.
         SmootherKind::Joint(k) => {
             let k = (k as u64).min(big_n - 1);
-            steps * big_n * (2 * n + 3 * (k + 1) * n * n) * 8
+            steps * big_n * (2 * n + 2 * (k + 1) * n * n) * 8
         }
         // P(t|t), T(t+1) of the whole chain, the means, y and u.
         SmootherKind::Centralized => {
