@@ -122,15 +122,19 @@ measure() {
 }
 
 # --- filter core (criterion, no I/O) -----------------------------------------------------
-log "filter core: cargo bench --bench filter -- core (one and $THREADS threads)"
-rm -rf "$ROOT/target/criterion/core"
-cargo bench --locked --bench filter -q -- core --warm-up-time 2 --measurement-time 8 >/dev/null 2>&1
-python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
+log "filter core: cargo bench --bench filter -- core (one and $THREADS threads), $RUNS times"
+for _ in $(seq "$RUNS"); do
+    rm -rf "$ROOT/target/criterion/core"
+    cargo bench --locked --bench filter -q -- core --warm-up-time 2 --measurement-time 8 \
+        >/dev/null 2>&1
+    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
 import json, sys
 env = json.load(open(sys.argv[1]))
-env["core"] = {name: [ns, elems] for name, ns, elems in json.loads(sys.argv[2]) if name.startswith("core/")}
+run = {name: [ns, elems] for name, ns, elems in json.loads(sys.argv[2]) if name.startswith("core/")}
+env.setdefault("core_runs", []).append(run)
 json.dump(env, open(sys.argv[1], "w"))
 EOF
+done
 
 # --- workload W --------------------------------------------------------------------------
 log "workload W: simulate N = 10000, T = 1000"
