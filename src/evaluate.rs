@@ -176,9 +176,10 @@ struct Schedules<'m> {
     smoothers: Vec<Option<SmootherSchedule>>,
 }
 
-/// Bytes the schedule of the centralized or joint smoother needs: its gains and the diagonal blocks of
-/// `P(t|T)` per step (for `joint`, the factor of `𝒥` with blocks `2n × 2n` and bandwidth
-/// `κ = k + 2b` and `Λˢ(t+1)` with band `k`; `b` is the first step's).
+/// Bytes the schedule of the centralized or joint smoother needs: its gains and the diagonal
+/// blocks of `P(t|T)` per step (for `joint`, the factor of `𝒥` with blocks `2n × 2n` and
+/// bandwidth `κ = k + 2b` with the inverses of its diagonal blocks, and `Λˢ(t+1)` with band
+/// `k`; `b` is the first step's).
 fn smoother_schedule_bytes(model: &Model, name: &str, opts: &EvaluateOptions) -> Result<f64> {
     let (n, big_n) = (model.dims.n as f64, model.subsystems as f64);
     let per_step = match name {
@@ -187,7 +188,7 @@ fn smoother_schedule_bytes(model: &Model, name: &str, opts: &EvaluateOptions) ->
             let filter = JointFilter::new(model, joint_options(opts))?;
             let k = filter.band();
             let kappa = (k + 2 * filter.a_eff_half_width()).min(model.subsystems - 1) as f64;
-            big_n * ((kappa + 1.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
+            big_n * ((kappa + 2.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
         }
     };
     Ok(8.0 * per_step * model.steps as f64)

@@ -105,6 +105,21 @@ impl BandCholesky {
         specialise!(self.bs, factor_body(self, a))
     }
 
+    /// A copy that can only [`solve_in_place`](Self::solve_in_place): `L` and the inverses
+    /// of its diagonal blocks, without the selected inversion's `Eᵀ`, pivot inverses and
+    /// window (about half the memory of a full clone), for keeping many factors.
+    pub fn clone_for_solves(&self) -> Self {
+        Self {
+            l: self.l.clone(),
+            l_diag_inv: self.l_diag_inv.clone(),
+            pivot_inv: Vec::new(),
+            et: Vec::new(),
+            tmp: Vec::new(),
+            rows: Vec::new(),
+            ..*self
+        }
+    }
+
     /// SPEC §9 update step 5: `x ← Λ⁻¹ x` (`x.len() == nb·bs`) by forward substitution
     /// `y_i = L_ii⁻¹ (x_i − Σ_{j=i−k}^{i−1} L_{i,j} y_j)` and back substitution
     /// `z_i = L_ii⁻ᵀ (y_i − Σ_{l=i+1}^{i+k} L_{l,i}ᵀ z_l)` (the sum accumulated row by row of

@@ -142,7 +142,7 @@ impl Smoother for JointSmoother<'_> {
             .map_err(|e| smoother_error(t, loading, k, e))?;
             if keep_gains {
                 gains.push(BackwardGain::Joint {
-                    factor: Box::new(ws.chol.clone()),
+                    factor: Box::new(ws.chol.clone_for_solves()),
                     smoothed_precision: Box::new(lam_s.clone()),
                     a_eff: Arc::clone(&a_eff[idx]),
                 });
