@@ -1,11 +1,11 @@
 //! `sisfilt plot evaluate`: the figures of a Monte Carlo evaluation (`sisfilt evaluate --out`).
 //!
-//! For one evaluation: the RMSE of each filter (overall and per state element), its average
-//! NEES (ANEES, `eᵀ P⁻¹ e / n` averaged; 1 for an honest covariance) on a log scale against the
-//! 95 % band of a consistent filter, and — when the JSON carries it per filter as
-//! `nees_per_step` (`nees_per_step[j]` the average NEES at `t = j + 1`, `null` where
-//! undefined) — the average NEES against time. For `evaluate --sweep-p`: RMSE and ANEES
-//! against the arrival probability `p`, one curve per filter.
+//! For one evaluation: the RMSE of each filter (overall and per state element), and its average
+//! NEES (ANEES, `eᵀ P⁻¹ e / n` averaged; 1 for an honest covariance) against the 95 % band of a
+//! consistent filter, on a log scale when the values span a decade or more. When the JSON
+//! carries, per filter, `nees_per_step` (`nees_per_step[j]` the average NEES at `t = j + 1`,
+//! `null` where undefined), a third panel draws it against time. For `evaluate --sweep-p`: RMSE
+//! and ANEES against the arrival probability `p`, one curve per filter.
 
 use std::ops::Range;
 use std::path::Path;
