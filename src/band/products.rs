@@ -4,6 +4,25 @@
 use super::kernels::{block_strip_acc, simd_available};
 use super::{GenBand, SymBand};
 
+/// One `bs × bs` scratch block: on the stack up to 4 × 4 (the kernels' fixed sizes), else on
+/// the heap, so that the products allocate nothing for the common block sizes.
+#[derive(Default)]
+struct BlockScratch {
+    small: [f64; 16],
+    big: Vec<f64>,
+}
+
+impl BlockScratch {
+    fn get(&mut self, bb: usize) -> &mut [f64] {
+        if bb <= self.small.len() {
+            &mut self.small[..bb]
+        } else {
+            self.big.resize(bb, 0.0);
+            &mut self.big
+        }
+    }
+}
+
 /// Block `(l, m)` of a symmetric band and whether it is stored transposed; `None` outside.
 #[inline]
 pub(crate) fn sym_block(p: &SymBand, l: usize, m: usize) -> Option<(&[f64], bool)> {
@@ -28,14 +47,8 @@ fn sym_times_gen_body(bs: usize, s: &SymBand, a: &GenBand, out: &mut GenBand) {
     let (nb, k, b) = (a.nb(), s.width(), a.half_width());
     let (hw, bb) = (out.half_width(), bs * bs);
     let simd = simd_available();
-    let mut x = [0.0; 16];
-    let mut x_big = Vec::new();
-    let x = if bb <= 16 {
-        &mut x[..bb]
-    } else {
-        x_big.resize(bb, 0.0);
-        &mut x_big[..]
-    };
+    let mut scratch = BlockScratch::default();
+    let x = scratch.get(bb);
     out.fill_zero();
     for l in 0..nb {
         let row = out.row_strip_mut(l);
@@ -64,14 +77,8 @@ fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) 
     let (nb, b, hw) = (a.nb(), a.half_width(), w.half_width());
     let (width, bb) = (out.width(), bs * bs);
     let simd = simd_available();
-    let mut x = [0.0; 16];
-    let mut x_big = Vec::new();
-    let x = if bb <= 16 {
-        &mut x[..bb]
-    } else {
-        x_big.resize(bb, 0.0);
-        &mut x_big[..]
-    };
+    let mut scratch = BlockScratch::default();
+    let x = scratch.get(bb);
     out.fill_zero();
     for i in 0..nb {
         let row = out.row_strip_mut(i);
@@ -112,14 +119,8 @@ fn diag_t_times_gen_body<'a>(
 ) {
     let bb = bs * bs;
     let simd = simd_available();
-    let mut x = [0.0; 16];
-    let mut x_big = Vec::new();
-    let x = if bb <= 16 {
-        &mut x[..bb]
-    } else {
-        x_big.resize(bb, 0.0);
-        &mut x_big[..]
-    };
+    let mut scratch = BlockScratch::default();
+    let x = scratch.get(bb);
     for i in 0..w.nb() {
         copy_block(bs, d(i), true, x);
         let row = out.row_strip_mut(i);
