@@ -65,6 +65,14 @@ pub struct EvaluateOptions {
     pub smooth: bool,
 }
 
+impl EvaluateOptions {
+    /// `R runs (seeds s..s+R−1)`, for the tables' first line.
+    fn runs_and_seeds(&self) -> String {
+        let last = self.seed.wrapping_add(self.runs as u64 - 1);
+        format!("{} runs (seeds {}..{last})", self.runs, self.seed)
+    }
+}
+
 /// The figures of one filter over all runs.
 #[derive(Debug, Clone, Serialize)]
 pub struct FilterResult {
@@ -632,11 +640,9 @@ impl Sweep {
     pub fn table(&self) -> String {
         let o = &self.options;
         let mut s = format!(
-            "{}: {} runs (seeds {}..{}) × T = {} × N = {} per value of p; scored t > {}; p replaces the config's arrival probability at every (t, i)\n",
+            "{}: {} × T = {} × N = {} per value of p; scored t > {}; p replaces the config's arrival probability at every (t, i)\n",
             self.config,
-            o.runs,
-            o.seed,
-            o.seed.wrapping_add(o.runs as u64 - 1),
+            o.runs_and_seeds(),
             self.steps,
             self.subsystems,
             o.burn_in
@@ -709,11 +715,9 @@ impl Evaluation {
     pub fn table(&self) -> String {
         let o = &self.options;
         let mut s = format!(
-            "{}: {} runs (seeds {}..{}) × T = {} × N = {}; scored t > {}\n\n",
+            "{}: {} × T = {} × N = {}; scored t > {}\n\n",
             self.config,
-            o.runs,
-            o.seed,
-            o.seed.wrapping_add(o.runs as u64 - 1),
+            o.runs_and_seeds(),
             self.steps,
             self.subsystems,
             o.burn_in
