@@ -212,40 +212,13 @@ fn state_color(k: Option<usize>) -> RGBColor {
     }
 }
 
-/// Draws `name` right-aligned left of the plotting area, at height `y` (data coordinates).
-fn name_label<X, Y, DB>(
-    ch: &mut ChartContext<DB, Cartesian2d<X, Y>>,
-    x_left: X::ValueType,
-    y: Y::ValueType,
-    text: &str,
-    color: RGBColor,
-) -> Result<()>
-where
-    X: Ranged,
-    Y: Ranged,
-    DB: DrawingBackend,
-    X::ValueType: Clone,
-    Y::ValueType: Clone,
-    DB::ErrorType: 'static,
-{
-    ch.draw_series(std::iter::once(
-        EmptyElement::at((x_left, y))
-            + Text::new(
-                text.to_string(),
-                (-10, 0),
-                font(LABEL_SIZE)
-                    .color(&color)
-                    .pos(Pos::new(HPos::Right, VPos::Center)),
-            ),
-    ))?;
-    Ok(())
-}
-
-/// Draws `text` at data point `(x, y)`, shifted by `dx` pixels, vertically centred.
-fn note_at<X, Y, DB>(
+/// Draws `text` at data point `(x, y)`, shifted by `dx` pixels, vertically centred and
+/// aligned by `align` (a filter's name: right-aligned 10 pixels left of the plotting area).
+fn text_at<X, Y, DB>(
     ch: &mut ChartContext<DB, Cartesian2d<X, Y>>,
     at: (X::ValueType, Y::ValueType),
     dx: i32,
+    align: HPos,
     text: &str,
     color: RGBColor,
 ) -> Result<()>
@@ -264,7 +237,7 @@ where
                 (dx, 0),
                 font(LABEL_SIZE)
                     .color(&color)
-                    .pos(Pos::new(HPos::Left, VPos::Center)),
+                    .pos(Pos::new(align, VPos::Center)),
             ),
     ))?;
     Ok(())
@@ -356,12 +329,13 @@ impl Bars<'_> {
             // The first filter on top.
             let centre = (rows - row) as f64 - 0.5;
             let top = (rows - row) as f64 - 0.65 * bar;
-            name_label(&mut ch, base, centre, &f.name, BLACK)?;
+            text_at(&mut ch, (base, centre), -10, HPos::Right, &f.name, BLACK)?;
             let Some(a) = &f.accuracy else {
-                note_at(
+                text_at(
                     &mut ch,
                     (base, centre),
                     8,
+                    HPos::Left,
                     &why_missing(f, self.config),
                     GREY,
                 )?;
@@ -378,10 +352,24 @@ impl Bars<'_> {
                             [(base, y0), (v, y1)],
                             state_color(k).filled(),
                         )))?;
-                        note_at(&mut ch, (v, (y0 + y1) / 2.0), 4, &fmt_value(v), BLACK)?;
+                        text_at(
+                            &mut ch,
+                            (v, (y0 + y1) / 2.0),
+                            4,
+                            HPos::Left,
+                            &fmt_value(v),
+                            BLACK,
+                        )?;
                     }
                     None => {
-                        note_at(&mut ch, (base, (y0 + y1) / 2.0), 4, "∞ (overflowed)", GREY)?;
+                        text_at(
+                            &mut ch,
+                            (base, (y0 + y1) / 2.0),
+                            4,
+                            HPos::Left,
+                            "∞ (overflowed)",
+                            GREY,
+                        )?;
                     }
                 }
             }
@@ -486,9 +474,16 @@ impl Dots<'_> {
         for (row, f) in self.filters.iter().enumerate() {
             let y = (rows - row) as f64 - 0.5;
             let color = PALETTE[row % PALETTE.len()];
-            name_label(&mut ch, lo, y, &f.name, BLACK)?;
+            text_at(&mut ch, (lo, y), -10, HPos::Right, &f.name, BLACK)?;
             let Some(a) = &f.accuracy else {
-                note_at(&mut ch, (lo, y), 8, &why_missing(f, self.config), GREY)?;
+                text_at(
+                    &mut ch,
+                    (lo, y),
+                    8,
+                    HPos::Left,
+                    &why_missing(f, self.config),
+                    GREY,
+                )?;
                 continue;
             };
             if let Some([Some(b0), Some(b1)]) = a.anees_band {
@@ -500,12 +495,13 @@ impl Dots<'_> {
             match finite(a.anees) {
                 Some(v) => {
                     ch.draw_series(std::iter::once(Circle::new((v, y), 6, color.filled())))?;
-                    note_at(&mut ch, (v, y), 10, &fmt_value(v), BLACK)?;
+                    text_at(&mut ch, (v, y), 10, HPos::Left, &fmt_value(v), BLACK)?;
                 }
-                None => note_at(
+                None => text_at(
                     &mut ch,
                     (lo, y),
                     8,
+                    HPos::Left,
                     "∞: a zero variance met a resolved error",
                     GREY,
                 )?,
