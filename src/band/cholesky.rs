@@ -66,10 +66,6 @@ impl BandCholesky {
         self.k
     }
 
-    /// Kept for the API: [`BandCholesky::selected_inverse`] sizes its window of rows (which
-    /// depends on the output width) on first use and reuses it afterwards.
-    pub fn reserve_width(&mut self, _w: usize) {}
-
     #[inline]
     fn l_off(&self, i: usize, j: usize) -> usize {
         debug_assert!(j <= i && i - j <= self.k && i < self.nb);

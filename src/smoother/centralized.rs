@@ -78,12 +78,13 @@ impl Smoother for CentralizedSmoother<'_> {
         Ok(())
     }
 
-    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
+    fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
         let mut xs: Vec<Vec<f64>> = self.x_filt.iter().map(|x| x.as_slice().to_vec()).collect();
-        let mut ps = self.p_filt.clone();
+        // P(t|T) overwrites P(t|t) in place: ps[k] is still P(k|k) until step k ends.
+        let mut ps = std::mem::take(&mut self.p_filt);
         let mut mean = MeanPass::new(model);
         let mut gains = Vec::new();
         for k in (0..steps.saturating_sub(1)).rev() {
@@ -97,7 +98,7 @@ impl Smoother for CentralizedSmoother<'_> {
                 return self.information_form_fallback(k + 1, condition, keep_gains);
             };
             // Cᵀ = T⁻¹ A_eff P.
-            let gain_tr = chol.solve(&(&self.a_eff[k] * &self.p_filt[k]));
+            let gain_tr = chol.solve(&(&self.a_eff[k] * &ps[k]));
             let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
             mean.apply(
                 model,
@@ -109,7 +110,7 @@ impl Smoother for CentralizedSmoother<'_> {
                 &mut xs_head[k],
             );
             let diff = &ps[k + 1] - t_next;
-            let mut p = &self.p_filt[k] + gain_tr.tr_mul(&(diff * &gain_tr));
+            let mut p = &ps[k] + gain_tr.tr_mul(&(diff * &gain_tr));
             p = (&p + p.transpose()) * 0.5;
             ps[k] = p;
             if keep_gains {
