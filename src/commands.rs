@@ -17,12 +17,12 @@ use crate::error::Error;
 use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
 use crate::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
-    TwoStepOptions, two_step,
+    TwoStepOptions, check_estimates, two_step,
 };
 use crate::inputs::{InputStream, open_csv};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
-use crate::io::{CsvWriter, Output, RunRecord, StepLayout};
+use crate::io::{CsvWriter, Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use crate::lifted::{a_eff_band, spectral_radius};
 use crate::messages::{Verbosity, info, verbosity};
 use crate::model::{MATRIX_KEYS, Model};
@@ -236,8 +236,14 @@ fn simulate_command(args: &SimulateArgs) -> Result<()> {
     for w in model.windows().iter().filter(|w| w.first <= model.steps) {
         ChainSolver::new(&model, w.first)?;
     }
-    let inputs = InputStream::open(&model, None)?;
     let out_dir = &args.out;
+    let read = config_files(&args.config, &model);
+    let written: Vec<PathBuf> = simulation_files(model.dims.m)
+        .map(|name| out_dir.join(name))
+        .collect();
+    let written: Vec<Role> = written.iter().map(|p| Role::new("--out", p)).collect();
+    check_files(&read, &written)?;
+    let inputs = InputStream::open(&model, None)?;
     if out_dir.exists() && !out_dir.is_dir() {
         return Err(Error::Usage(format!(
             "--out {}: exists and is not a folder",
@@ -267,6 +273,23 @@ fn simulate_command(args: &SimulateArgs) -> Result<()> {
         }
     }
     result
+}
+
+/// The files a run of `model` reads: its config, and the inputs file the config names.
+fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
+    let mut read = vec![Role::new("the config", config)];
+    if let Some(path) = InputStream::path(model, None) {
+        read.push(Role::new("the inputs file", path));
+    }
+    read
+}
+
+/// The files `simulate` writes into its folder, for a model with `m` inputs.
+fn simulation_files(m: usize) -> impl Iterator<Item = &'static str> {
+    ["truth.csv", "measurements.csv"]
+        .into_iter()
+        .chain((m > 0).then_some("inputs.csv"))
+        .chain([RunRecord::FILE])
 }
 
 /// Simulates and writes the files of `simulate` into the existing folder `args.out`; each file
@@ -412,10 +435,7 @@ fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>
         )
         .into());
     }
-    let dir = match args.meas.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
+    let dir = folder_of(&args.meas).to_path_buf();
     let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
     Ok((record.config_source(&dir.join(RunRecord::FILE))?, Some(dir)))
 }
@@ -454,6 +474,32 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
             .map(|dir| dir.join("inputs.csv"))
             .filter(|p| d.m > 0 && p.is_file())
     });
+    if d.m == 0
+        && let Some(path) = &args.inputs
+    {
+        return Err(Error::Usage(format!(
+            "--inputs {}: the model has no inputs (m = 0), so the file would never be read; leave --inputs out",
+            path.display()
+        ))
+        .into());
+    }
+    let record = run_dir.as_ref().map(|dir| dir.join(RunRecord::FILE));
+    let mut read: Vec<Role> = (args.config.iter().map(|p| Role::new("--config", p)))
+        .chain(record.iter().map(|p| Role::new("the run record", p)))
+        .collect();
+    read.push(Role::new("--meas", &args.meas));
+    if let Some(path) = &args.truth {
+        read.push(Role::new("--truth", path));
+    }
+    if let Some(path) = InputStream::path(&model, inputs_file.as_deref()) {
+        let what = if args.inputs.is_some() {
+            "--inputs"
+        } else {
+            "the inputs file"
+        };
+        read.push(Role::new(what, path));
+    }
+    check_files(&read, &[Role::new("--out", &args.out)])?;
     let mut inputs = InputStream::open(&model, inputs_file.as_deref())?;
     let mut meas = open_csv(&args.meas, measurement_layout(d.q, opts.dropouts), big_n)?;
     let mut truth = args
@@ -597,6 +643,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         } else {
             filter.filtered()
         };
+        check_estimates(t, n, x_hat, p_hat)?;
         let band = filter.covariance_band(args.predicted).map(|(b, _)| b);
         clock
             .write(|| writer.write_step(t, x_hat, p_hat, band))
@@ -728,6 +775,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     let out_name = args.out.display().to_string();
     let mut accuracy = Accuracy::new(n);
     for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
+        check_estimates(idx + 1, n, x, p)?;
         let band = smoothed.bands.as_ref().map(|b| &b[idx]);
         writer
             .write_step(idx + 1, x, p, band)
@@ -887,6 +935,12 @@ fn report_accuracy(r: &AccuracyReport) {
 fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
     use std::io::IsTerminal;
     let (_, model) = load_model(&args.config)?;
+    if let Some(out) = &args.out {
+        check_files(
+            &config_files(&args.config, &model),
+            &[Role::new("--out", out)],
+        )?;
+    }
     let out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
     let opts = crate::evaluate::EvaluateOptions {
         runs: args.runs,

@@ -51,6 +51,10 @@ pub enum Error {
     /// positive definite).
     #[error("t = {t}, i = {i}: {msg}")]
     Numerical { t: usize, i: usize, msg: String },
+
+    /// An error in run `run` (1-based) of a Monte Carlo study.
+    #[error("run {run}, {error}")]
+    InRun { run: usize, error: Box<Error> },
 }
 
 impl Error {
@@ -58,6 +62,7 @@ impl Error {
     pub fn exit_code(&self) -> u8 {
         match self {
             Error::Numerical { .. } => 1,
+            Error::InRun { error, .. } => error.exit_code(),
             Error::Io { err: source, .. } if source.kind() != std::io::ErrorKind::NotFound => {
                 if matches!(
                     source.kind(),
@@ -75,6 +80,28 @@ impl Error {
                 }
             }
             _ => 2,
+        }
+    }
+
+    /// `Ok` when every value is finite; else the breakdown at step `t` (1-based) in the first
+    /// subsystem whose block of `width` values holds one that is not: overflow or NaN must
+    /// stop a run, never reach an output.
+    pub fn check_finite(
+        t: usize,
+        width: usize,
+        values: &[f64],
+        msg: impl FnOnce() -> String,
+    ) -> Result<()> {
+        match values
+            .chunks(width.max(1))
+            .position(|block| !block.iter().all(|v| v.is_finite()))
+        {
+            None => Ok(()),
+            Some(i) => Err(Error::Numerical {
+                t,
+                i: i + 1,
+                msg: msg(),
+            }),
         }
     }
 

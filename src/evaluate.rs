@@ -16,7 +16,7 @@ use crate::error::{Error, Result};
 use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
     CentralizedFilter, CentralizedSchedule, ChainFilter, Dropouts, JointFilter, JointOptions,
-    ScheduledCentralized, TwoStepOptions, two_step,
+    ScheduledCentralized, TwoStepOptions, check_estimates, two_step,
 };
 use crate::inputs::InputStream;
 use crate::model::Model;
@@ -303,7 +303,11 @@ fn run_filters(
     schedules: &Schedules,
     r: usize,
 ) -> Result<RunResult> {
-    let data = realise(model, opts.seed.wrapping_add(r as u64))?;
+    let in_run = |error| Error::InRun {
+        run: r + 1,
+        error: Box::new(error),
+    };
+    let data = realise(model, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
     let (n, big_n) = (model.dims.n, model.subsystems);
     let mut out = Vec::with_capacity(FILTERS.len());
     for (k, name) in FILTERS.iter().enumerate() {
@@ -315,9 +319,10 @@ fn run_filters(
         let result = (|| -> Result<(Accuracy, StepNees)> {
             let mut acc = Accuracy::new(n);
             let mut per_step = StepNees::new(model.steps);
-            let mut score = |t: usize, x_hat: &[f64], p_hat: &[f64]| {
+            let mut score = |t: usize, x_hat: &[f64], p_hat: &[f64]| -> Result<()> {
+                check_estimates(t + 1, n, x_hat, p_hat)?;
                 if t < opts.burn_in {
-                    return;
+                    return Ok(());
                 }
                 let (sum, terms, infinite) = acc.nees_totals();
                 for i in 0..big_n {
@@ -331,6 +336,7 @@ fn run_filters(
                 per_step.sum[t] = sum_now - sum;
                 per_step.terms[t] = terms_now - terms;
                 per_step.infinite[t] = infinite_now - infinite;
+                Ok(())
             };
             if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
                 // The filter's means, then the stored backward gains (SPEC §10).
@@ -348,7 +354,7 @@ fn run_filters(
                 }
                 let xs = schedule.smooth_means(model, &x_filt, &x_pred);
                 for t in 0..xs.len() {
-                    score(t, &xs[t], &schedule.p[t]);
+                    score(t, &xs[t], &schedule.p[t])?;
                 }
                 return Ok((acc, per_step));
             }
@@ -359,7 +365,7 @@ fn run_filters(
                 }
                 let smoothed = s.finish()?;
                 for t in 0..data.y.len() {
-                    score(t, &smoothed.x[t], &smoothed.p[t]);
+                    score(t, &smoothed.x[t], &smoothed.p[t])?;
                 }
                 return Ok((acc, per_step));
             }
@@ -373,14 +379,14 @@ fn run_filters(
                 f.step(&ys[t], &data.u[t])?;
                 {
                     let (x_hat, p_hat) = f.filtered();
-                    score(t, x_hat, p_hat);
+                    score(t, x_hat, p_hat)?;
                 }
             }
             Ok((acc, per_step))
         })();
 
         out.push((
-            result.map_err(|e| format!("{e}")),
+            result.map_err(|e| format!("{}", in_run(e))),
             start.elapsed().as_secs_f64(),
         ));
     }
@@ -397,6 +403,13 @@ pub fn evaluate(
     let start = Instant::now();
     if opts.runs == 0 {
         return Err(Error::Usage("--runs must be at least 1".into()));
+    }
+    if opts.burn_in >= model.steps {
+        // RMSE and ANEES over no terms would read as a perfect score.
+        return Err(Error::Usage(format!(
+            "--burn-in {} leaves no step to score: {} has T = {} steps; choose a burn-in below T",
+            opts.burn_in, model.name, model.steps
+        )));
     }
     let d = model.dims;
     // x, y, y with the losses marked, u, and a vector header for each, per step.

@@ -50,22 +50,27 @@ pub fn open_csv(
 impl InputStream {
     /// Inputs from `file` when given, else as the model's `[input]` says.
     pub fn open(model: &Model, file: Option<&Path>) -> Result<Self> {
-        let m = model.dims.m;
-        let path = match (file, &model.input) {
-            (Some(f), _) => Some(f.to_path_buf()),
-            (None, InputSpec::File(f)) => Some(f.clone()),
-            _ => None,
-        };
-        match path {
-            Some(p) if m > 0 => Ok(InputStream::File(Box::new(open_csv(
-                &p,
-                inputs_layout(m),
+        match Self::path(model, file) {
+            Some(p) => Ok(InputStream::File(Box::new(open_csv(
+                p,
+                inputs_layout(model.dims.m),
                 model.subsystems,
             )?))),
-            _ => Ok(InputStream::Generated {
+            None => Ok(InputStream::Generated {
                 spec: model.input.clone(),
-                m,
+                m: model.dims.m,
             }),
+        }
+    }
+
+    /// The file [`InputStream::open`] reads, if any: `file` when given, else the one the
+    /// model's `[input]` names; none when the model has no inputs.
+    pub fn path<'a>(model: &'a Model, file: Option<&'a Path>) -> Option<&'a Path> {
+        match (file, &model.input) {
+            _ if model.dims.m == 0 => None,
+            (Some(f), _) => Some(f),
+            (None, InputSpec::File(f)) => Some(f),
+            _ => None,
         }
     }
 

@@ -11,7 +11,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::inputs::InputStream;
 use crate::interconnect::ChainSolver;
 use crate::linalg::{mat_vec_add, psd_sqrt};
@@ -97,6 +97,13 @@ pub fn simulate(
             mat_vec_add(xn, &p.C, ui);
             draw_normal(&mut rng, &mut noise[..n]);
             mat_vec_add(xn, &sqrt_q[id], &noise[..n]);
+        }
+        for (values, width, what) in [(&x, n, "state x"), (&y, q, "measurement y")] {
+            Error::check_finite(t, width, values, || {
+                format!(
+                    "the simulated {what} is no longer finite: the chain is unstable (`sisfilt check` prints the spectral radius of A_eff)"
+                )
+            })?;
         }
         sink(&SimStep {
             t,

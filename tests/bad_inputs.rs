@@ -17,7 +17,8 @@
 //! there with `RUST_BACKTRACE=1`, and checks the exit code; that standard output is empty; that
 //! standard error is exactly one line, starting with `error: `, holding every fragment and no
 //! panic or backtrace; and that the folder is byte-for-byte what it was: no output file and no
-//! temporary file was left, and a pre-existing output (an `out.csv` in the case) is intact.
+//! temporary file was left, and every file that was there (inputs, a previous `out.csv`) keeps
+//! its bytes and its mode, every symbolic link its target.
 //! Every case runs; the test fails listing all the cases that went wrong.
 
 mod common;
@@ -61,7 +62,8 @@ fn case_dirs() -> Vec<PathBuf> {
     dirs
 }
 
-/// Copies `src` into `dst` recursively, leaving out the top-level `case.toml`.
+/// Copies `src` into `dst` recursively, leaving out the top-level `case.toml`; symbolic links
+/// are copied as links.
 fn copy_case(src: &Path, dst: &Path, top: bool) {
     std::fs::create_dir_all(dst).unwrap();
     for entry in std::fs::read_dir(src).unwrap() {
@@ -70,7 +72,10 @@ fn copy_case(src: &Path, dst: &Path, top: bool) {
         if top && entry.file_name() == "case.toml" {
             continue;
         }
-        if from.is_dir() {
+        let kind = entry.file_type().unwrap();
+        if kind.is_symlink() {
+            std::os::unix::fs::symlink(std::fs::read_link(&from).unwrap(), &to).unwrap();
+        } else if kind.is_dir() {
             copy_case(&from, &to, false);
         } else {
             std::fs::copy(&from, &to).unwrap();
@@ -78,17 +83,33 @@ fn copy_case(src: &Path, dst: &Path, top: bool) {
     }
 }
 
-/// Every file (with its bytes) and folder (`None`) under `dir`, by relative path.
-fn snapshot(dir: &Path) -> BTreeMap<PathBuf, Option<Vec<u8>>> {
-    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<PathBuf, Option<Vec<u8>>>) {
+/// What a path under a case folder is: a folder, a symbolic link (its target), or a file (its
+/// bytes); with its permission bits.
+#[derive(PartialEq, Debug)]
+enum Entry {
+    Folder(u32),
+    Link(PathBuf),
+    File(Vec<u8>, u32),
+}
+
+type Snapshot = BTreeMap<PathBuf, Entry>;
+
+/// Every entry under `dir`, by relative path.
+fn snapshot(dir: &Path) -> Snapshot {
+    use std::os::unix::fs::PermissionsExt;
+    fn walk(root: &Path, dir: &Path, out: &mut Snapshot) {
         for entry in std::fs::read_dir(dir).unwrap() {
             let path = entry.unwrap().path();
             let rel = path.strip_prefix(root).unwrap().to_path_buf();
-            if path.is_dir() {
-                out.insert(rel, None);
+            let meta = std::fs::symlink_metadata(&path).unwrap();
+            let mode = meta.permissions().mode() & 0o7777;
+            if meta.file_type().is_symlink() {
+                out.insert(rel, Entry::Link(std::fs::read_link(&path).unwrap()));
+            } else if meta.is_dir() {
+                out.insert(rel, Entry::Folder(mode));
                 walk(root, &path, out);
             } else {
-                out.insert(rel, Some(std::fs::read(&path).unwrap()));
+                out.insert(rel, Entry::File(std::fs::read(&path).unwrap(), mode));
             }
         }
     }
@@ -98,10 +119,7 @@ fn snapshot(dir: &Path) -> BTreeMap<PathBuf, Option<Vec<u8>>> {
 }
 
 /// What changed between two snapshots, as one line per path.
-fn changes(
-    before: &BTreeMap<PathBuf, Option<Vec<u8>>>,
-    after: &BTreeMap<PathBuf, Option<Vec<u8>>>,
-) -> Vec<String> {
+fn changes(before: &Snapshot, after: &Snapshot) -> Vec<String> {
     let mut out = Vec::new();
     for (path, content) in after {
         match before.get(path) {
@@ -470,5 +488,161 @@ fn estimate_interrupted_by_sigint_or_sigterm_cleans_up_and_keeps_the_previous_ou
             "SIG{signal}"
         );
         assert_eq!(temp_files(tmp.path()), Vec::<PathBuf>::new(), "SIG{signal}");
+    }
+}
+
+/// A folder with a small chain simulated into `sim/` and its estimates in `e.csv`, and the
+/// command line of every command that writes a file, writing to `out` (a path relative to the
+/// folder; `simulate` writes `out/truth.csv` and its siblings, so `out` names a folder there).
+fn writers(dir: &Path) -> Vec<(&'static str, Vec<String>)> {
+    let config = catalogue_dir().join("055_csv_missing_row/config.toml");
+    std::fs::copy(config, dir.join("config.toml")).unwrap();
+    let run = |args: &[&str]| {
+        sisfilt().current_dir(dir).args(args).assert().success();
+    };
+    run(&["simulate", "config.toml", "--out", "sim"]);
+    run(&[
+        "estimate",
+        "--meas",
+        "sim/measurements.csv",
+        "--out",
+        "e.csv",
+    ]);
+    let args = |list: &[&str]| list.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    vec![
+        (
+            "estimate",
+            args(&["estimate", "--meas", "sim/measurements.csv"]),
+        ),
+        (
+            "evaluate",
+            args(&["evaluate", "config.toml", "--runs", "1"]),
+        ),
+        (
+            "plot",
+            args(&[
+                "plot",
+                "heatmap",
+                "--truth",
+                "sim/truth.csv",
+                "--estimates",
+                "e.csv",
+            ]),
+        ),
+        ("simulate", args(&["simulate", "config.toml"])),
+    ]
+}
+
+/// Runs `args --out out` in `dir` under the shell's `umask`.
+fn run_with_umask(dir: &Path, umask: &str, args: &[String], out: &str) {
+    let output = std::process::Command::new("sh")
+        .current_dir(dir)
+        .arg("-c")
+        .arg(format!("umask {umask} && exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_sisfilt"))
+        .args(args)
+        .args(["--out", out])
+        .stdout(Stdio::null())
+        .output()
+        .expect("run sh");
+    assert!(output.status.success(), "{args:?} --out {out}: {output:?}");
+}
+
+/// The file `simulate` (which writes a folder) or any other command writes for `--out out`.
+fn written(dir: &Path, name: &str, out: &str) -> PathBuf {
+    if name == "simulate" {
+        dir.join(out).join("truth.csv")
+    } else {
+        dir.join(out)
+    }
+}
+
+fn mode(path: &Path) -> u32 {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(path).unwrap().permissions().mode() & 0o777
+}
+
+/// A new output gets `0666 & !umask`, as a shell's `>` would give it; a replaced one keeps its
+/// mode whatever the umask, so a result made private stays private. For every command that
+/// writes.
+#[test]
+fn outputs_follow_the_umask_when_new_and_keep_their_mode_when_replaced() {
+    use std::os::unix::fs::PermissionsExt;
+    let tmp = tempfile::tempdir().unwrap();
+    for (name, args) in writers(tmp.path()) {
+        for (umask, expected) in [("077", 0o600), ("022", 0o644), ("002", 0o664)] {
+            let out = format!("new-{umask}-{name}");
+            run_with_umask(tmp.path(), umask, &args, &out);
+            let file = written(tmp.path(), name, &out);
+            assert_eq!(mode(&file), expected, "{name} under umask {umask}");
+        }
+        for (umask, kept) in [("022", 0o600), ("077", 0o644)] {
+            let out = format!("kept-{umask}-{name}");
+            run_with_umask(tmp.path(), "022", &args, &out);
+            let file = written(tmp.path(), name, &out);
+            std::fs::set_permissions(&file, std::fs::Permissions::from_mode(kept)).unwrap();
+            run_with_umask(tmp.path(), umask, &args, &out);
+            assert_eq!(mode(&file), kept, "{name} replaced under umask {umask}");
+        }
+    }
+}
+
+/// An output that is a symbolic link is written through: the file it points to gets the new
+/// bytes, the link stays a link, and no temporary file is left in either folder.
+#[test]
+fn outputs_that_are_symbolic_links_are_written_through() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    std::fs::create_dir(dir.join("kept")).unwrap();
+    for (name, args) in writers(dir) {
+        // A first run gives the bytes to expect; the target then holds something else.
+        let out = format!("plain-{name}");
+        run_with_umask(dir, "022", &args, &out);
+        let expected = std::fs::read(written(dir, name, &out)).unwrap();
+        let (link, target) = if name == "simulate" {
+            std::fs::create_dir(dir.join("link-sim")).unwrap();
+            (dir.join("link-sim/truth.csv"), dir.join("kept/truth.csv"))
+        } else {
+            (
+                dir.join(format!("link-{name}")),
+                dir.join(format!("kept/{name}")),
+            )
+        };
+        std::fs::write(&target, "the previous result\n").unwrap();
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        let out = if name == "simulate" {
+            "link-sim".to_string()
+        } else {
+            format!("link-{name}")
+        };
+        run_with_umask(dir, "022", &args, &out);
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink(),
+            "{name}: the link was replaced"
+        );
+        let got = std::fs::read(&target).unwrap();
+        if name == "evaluate" {
+            // Its JSON records wall times: compare the figures.
+            let figures = |b: &[u8]| {
+                let v: serde_json::Value = serde_json::from_slice(b).unwrap();
+                v["filters"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|f| (f["name"].clone(), f["accuracy"].clone()))
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(figures(&got), figures(&expected), "{name}");
+        } else {
+            assert_eq!(got, expected, "{name}: the target did not get the output");
+        }
+        for folder in [dir.to_path_buf(), dir.join("kept"), dir.join("link-sim")] {
+            if folder.is_dir() {
+                assert_eq!(temp_files(&folder), Vec::<PathBuf>::new(), "{name}");
+            }
+        }
     }
 }

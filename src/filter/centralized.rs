@@ -178,6 +178,9 @@ impl ChainFilter for CentralizedFilter<'_> {
         }
         Self::diagonal_blocks(&self.p_filt, size, n, &mut self.block_filt);
         Self::diagonal_blocks(&self.t_pred, size, n, &mut self.block_pred);
+        Error::check_finite(t, n * n, &self.block_pred, || {
+            "the predicted covariance T(t+1) is no longer finite: it overflowed the range of f64 (about 1e308)".into()
+        })?;
         self.t += 1;
         Ok(())
     }

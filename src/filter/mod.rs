@@ -17,7 +17,7 @@ pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentraliz
 pub use joint::{JointFilter, JointOptions};
 pub use two_step::{Sharing, TwoStepFilter, two_step};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 /// A filter over the whole chain, one time step at a time.
 pub trait ChainFilter {
@@ -37,6 +37,15 @@ pub trait ChainFilter {
     fn covariance_band(&self, _predicted: bool) -> Option<(&SymBand, usize)> {
         None
     }
+}
+
+/// Checks the estimates of step `t` (`x̂`, `N·n` values, and the diagonal blocks of `P`,
+/// `N·n²`) before they are written or scored: an overflow stops the run at the first
+/// subsystem it reached, naming `t` and `i`.
+pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
+    let msg = || "the estimate x̂ or its covariance P is no longer finite (overflow)".to_string();
+    Error::check_finite(t, n, x, msg)?;
+    Error::check_finite(t, n * n, p, msg)
 }
 
 /// What the filter uses for the raw second moment `S = E[x xᵀ]` in the Nahi innovation

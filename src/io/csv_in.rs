@@ -50,6 +50,9 @@ fn parse_index(bytes: &[u8]) -> Option<usize> {
     Some(value)
 }
 
+/// Trailing columns that hold an indicator, 0 or 1: whether the measurement arrived.
+const INDICATOR_COLUMNS: &[&str] = &["gamma"];
+
 /// Reads a `t,i,…` CSV one time step (all `N` subsystems) at a time.
 pub struct StepReader<R: Read> {
     name: String,
@@ -58,6 +61,8 @@ pub struct StepReader<R: Read> {
     allow_empty: bool,
     empty_hint: &'static str,
     subsystems: usize,
+    /// The first indicator column (`gamma`, SPEC §6: 0 or 1); the header's length if none.
+    first_indicator: usize,
     reader: csv::Reader<R>,
     record: csv::ByteRecord,
     next_t: usize,
@@ -93,9 +98,14 @@ impl<R: Read> StepReader<R> {
             .flexible(true)
             .buffer_capacity(1 << 16)
             .from_reader(source);
+        let first_indicator = header
+            .iter()
+            .position(|h| INDICATOR_COLUMNS.contains(&h.as_str()))
+            .unwrap_or(header.len());
         let mut this = Self {
             name: name.to_string(),
             header,
+            first_indicator,
             allow_empty,
             empty_hint,
             subsystems,
@@ -217,6 +227,21 @@ impl<R: Read> StepReader<R> {
             }
             for k in 0..per_row {
                 out[(i - 1) * per_row + k] = self.number(line, 2 + k)?;
+            }
+            for col in self.first_indicator..self.header.len() {
+                let v = out[(i - 1) * per_row + col - 2];
+                if v != 0.0 && v != 1.0 {
+                    return Err(self.err(
+                        line,
+                        format!(
+                            "column `{}`: expected 0 (lost) or 1 (received), found `{}`",
+                            self.column_name(col),
+                            String::from_utf8_lossy(self.record.get(col).unwrap_or_default())
+                                .trim()
+                                .escape_debug()
+                        ),
+                    ));
+                }
             }
         }
         self.next_t += 1;

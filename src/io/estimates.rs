@@ -204,9 +204,8 @@ impl<W: Write> EstimatesWriter<W> {
 impl EstimatesWriter<Output> {
     /// [`EstimatesWriter::finish`], then commits the output (renames a file into place).
     pub fn commit(self, accuracy: Option<&AccuracyReport>) -> Result<()> {
-        let out = self
-            .finish(accuracy)
-            .map_err(|e| Error::io("<output>", e))?;
+        let name = self.out.name();
+        let out = self.finish(accuracy).map_err(|e| Error::io(name, e))?;
         out.commit()
     }
 }

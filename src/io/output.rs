@@ -2,7 +2,11 @@
 //! target folder, renamed over the target only when everything was written), so that an error
 //! or an interrupted run never leaves a half-written file and keeps the previous one intact.
 //! A destination that exists and is not a regular file (`/dev/null`, a named pipe, a terminal)
-//! is written in place: renaming over it would replace the device or pipe with a file.
+//! is written in place: renaming over it would replace the device or pipe with a file. A
+//! symbolic link is written through: the file it points to is replaced, the link stays.
+//!
+//! A new file gets the permissions the umask allows (`0666 & !umask`, as `>` in a shell); a
+//! replaced file keeps its own, so results a user made private stay private.
 //!
 //! The temporary files still open are listed in a registry, so that a run stopped by a signal
 //! can remove them ([`remove_pending_files`]; the binary calls it on SIGINT, SIGTERM and
@@ -13,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard};
 
 use crate::error::{Error, Result};
+use crate::io::folder_of;
 
 const BUFFER: usize = 1 << 20;
 
@@ -56,7 +61,10 @@ pub enum Output {
     Stdout(HeldStdout),
     File {
         file: BufWriter<tempfile::NamedTempFile>,
+        /// The path as given, for messages.
         dest: PathBuf,
+        /// The file replaced: `dest`, or where the symbolic link `dest` points.
+        target: PathBuf,
         registration: Registration,
     },
     /// An existing destination that is not a regular file, opened for writing as it is.
@@ -75,18 +83,22 @@ impl Output {
                 std::io::stdout(),
             )))));
         }
-        let special = std::fs::metadata(dest).is_ok_and(|m| !m.is_file() && !m.is_dir());
-        if special {
+        let target = link_target(dest).map_err(|e| Error::io(dest, e))?;
+        let existing = std::fs::metadata(&target).ok();
+        if existing
+            .as_ref()
+            .is_some_and(|m| !m.is_file() && !m.is_dir())
+        {
             let file = std::fs::OpenOptions::new()
                 .write(true)
-                .open(dest)
+                .open(&target)
                 .map_err(|e| Error::io(dest, e))?;
             return Ok(Output::Special {
                 file: BufWriter::with_capacity(BUFFER, file),
                 dest: dest.to_path_buf(),
             });
         }
-        if dest.is_dir() {
+        if existing.as_ref().is_some_and(std::fs::Metadata::is_dir) {
             return Err(Error::io(
                 dest,
                 std::io::Error::new(
@@ -95,10 +107,7 @@ impl Output {
                 ),
             ));
         }
-        let dir = match dest.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
+        let dir = folder_of(&target);
         if !dir.is_dir() {
             return Err(Error::Usage(format!(
                 "{}: the folder {} does not exist",
@@ -106,29 +115,41 @@ impl Output {
                 dir.display()
             )));
         }
-        let tmp = tempfile::Builder::new()
-            .prefix(".sisfilt-")
-            .suffix(".tmp")
-            .tempfile_in(dir)
-            .map_err(|e| {
-                // tempfile's message names its random file; say which folder refused instead.
-                let text = e.to_string();
-                let cause = text.split(" at path ").next().unwrap_or_default();
-                Error::io(
-                    dest,
-                    std::io::Error::new(
-                        e.kind(),
-                        format!(
-                            "cannot create a file in the folder {}: {cause}",
-                            dir.display()
-                        ),
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".sisfilt-").suffix(".tmp");
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            // Reduced by the umask when the file is created.
+            builder.permissions(std::fs::Permissions::from_mode(0o666));
+        }
+        let tmp = builder.tempfile_in(dir).map_err(|e| {
+            // tempfile's message names its random file; say which folder refused instead.
+            let text = e.to_string();
+            let cause = text.split(" at path ").next().unwrap_or_default();
+            Error::io(
+                dest,
+                std::io::Error::new(
+                    e.kind(),
+                    format!(
+                        "cannot create a file in the folder {}: {cause}",
+                        dir.display()
                     ),
-                )
-            })?;
+                ),
+            )
+        })?;
+        let registration = Registration::new(tmp.path());
+        if let Some(meta) = existing {
+            // Set after creation, so that the umask cannot narrow what the file had.
+            tmp.as_file()
+                .set_permissions(meta.permissions())
+                .map_err(|e| Error::io(dest, e))?;
+        }
         Ok(Output::File {
-            registration: Registration::new(tmp.path()),
+            registration,
             file: BufWriter::with_capacity(BUFFER, tmp),
             dest: dest.to_path_buf(),
+            target,
         })
     }
 
@@ -147,21 +168,13 @@ impl Output {
             Output::File {
                 file,
                 dest,
+                target,
                 registration,
             } => {
                 let tmp = file
                     .into_inner()
                     .map_err(|e| Error::io(&dest, e.into_error()))?;
                 tmp.as_file().sync_all().ok();
-                #[cfg(unix)]
-                {
-                    use std::os::unix::fs::PermissionsExt;
-                    // Temporary files are private (0600); results are ordinary files.
-                    let _ = std::fs::set_permissions(
-                        tmp.path(),
-                        std::fs::Permissions::from_mode(0o644),
-                    );
-                }
                 // Under the registry's lock: a signal handler either removed the file before
                 // (and the rename fails) or sees it already gone from the list.
                 let mut list = pending();
@@ -171,7 +184,7 @@ impl Output {
                         std::io::Error::new(std::io::ErrorKind::Interrupted, "interrupted"),
                     ));
                 }
-                let persisted = tmp.persist(&dest);
+                let persisted = tmp.persist(&target);
                 list.retain(|p| p != &registration.0);
                 drop(list);
                 persisted.map_err(|e| Error::io(&dest, e.error))?;
@@ -206,6 +219,31 @@ impl Write for Output {
             Output::Special { file, .. } => file.flush(),
         }
     }
+}
+
+/// Where `dest` leads once every symbolic link on the way is followed (a link's relative
+/// target is read from the link's folder); `dest` itself when it is no link. The result need
+/// not exist: a dangling link names the file to create.
+fn link_target(dest: &Path) -> std::io::Result<PathBuf> {
+    // As many links as Linux follows before it reports a loop (ELOOP).
+    const MAX_LINKS: usize = 40;
+    let mut path = dest.to_path_buf();
+    for _ in 0..MAX_LINKS {
+        match std::fs::symlink_metadata(&path) {
+            Ok(meta) if meta.file_type().is_symlink() => {
+                let next = std::fs::read_link(&path)?;
+                path = match path.parent() {
+                    Some(dir) if next.is_relative() => dir.join(next),
+                    _ => next,
+                };
+            }
+            _ => return Ok(path),
+        }
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::InvalidInput,
+        "too many levels of symbolic links",
+    ))
 }
 
 /// Buffered standard output that is only flushed by `HeldStdout::finish`: dropped on an
@@ -297,5 +335,48 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "old");
         out.commit().unwrap();
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "new");
+    }
+
+    /// A symbolic link is written through: its target gets the new bytes and keeps its mode,
+    /// the link stays a link.
+    #[test]
+    fn links_are_written_through_and_modes_kept() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("data")).unwrap();
+        let target = dir.path().join("data/out.csv");
+        std::fs::write(&target, "old").unwrap();
+        std::fs::set_permissions(&target, std::fs::Permissions::from_mode(0o640)).unwrap();
+        let link = dir.path().join("link.csv");
+        std::os::unix::fs::symlink("data/out.csv", &link).unwrap();
+        let mut out = Output::create(&link).unwrap();
+        out.write_all(b"new").unwrap();
+        out.commit().unwrap();
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "new");
+        let mode = std::fs::metadata(&target).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o640);
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("data")).unwrap().count(),
+            1
+        );
+
+        // A dangling link names the file to create.
+        std::fs::remove_file(&target).unwrap();
+        let mut out = Output::create(&link).unwrap();
+        out.write_all(b"created").unwrap();
+        out.commit().unwrap();
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "created");
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
     }
 }

@@ -24,6 +24,7 @@ use super::{
 };
 use crate::cli::PlotEvaluateArgs;
 use crate::error::Error;
+use crate::io::Role;
 
 /// The accuracy figures of one filter, as `evaluate` writes them (infinite values are `null`).
 #[derive(Debug, Deserialize)]
@@ -83,7 +84,7 @@ struct OptionsDoc {
 
 /// `sisfilt plot evaluate`.
 pub fn run(args: &PlotEvaluateArgs) -> Result<()> {
-    let out = open_output(&args.out)?;
+    let out = open_output(&args.out, &[Role::new("the evaluate JSON", &args.input)])?;
     let doc = read(&args.input)?;
     let svg = render(&doc, &args.input)?;
     commit_svg(out, &svg)

@@ -18,6 +18,7 @@ use super::{
 };
 use crate::cli::PlotHeatmapArgs;
 use crate::error::Error;
+use crate::io::Role;
 
 /// The error of state `k` at every `(t, i)`.
 pub struct ErrorMap {
@@ -36,7 +37,11 @@ pub struct ErrorMap {
 
 /// `sisfilt plot heatmap`.
 pub fn run(args: &PlotHeatmapArgs) -> Result<()> {
-    let out = open_output(&args.out)?;
+    let inputs = [
+        Role::new("--truth", &args.truth),
+        Role::new("--estimates", &args.estimates),
+    ];
+    let out = open_output(&args.out, &inputs)?;
     let map = read(args)?;
     let svg = render(&map)?;
     commit_svg(out, &svg)

@@ -19,7 +19,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use crate::io::Output;
+use crate::io::{Output, Role, check_files};
 use crate::messages::info;
 
 /// The font family of every text: the viewer's default sans-serif face.
@@ -81,8 +81,10 @@ fn compact(svg: &str) -> String {
 }
 
 /// Opens the output of a figure: a file written atomically, or `-` for standard output
-/// (for pipelines such as `… --out - | rsvg-convert`).
-pub(crate) fn open_output(path: &Path) -> Result<Output> {
+/// (for pipelines such as `… --out - | rsvg-convert`); refused when it is one of the files
+/// the figure is drawn from.
+pub(crate) fn open_output(path: &Path, inputs: &[Role]) -> Result<Output> {
+    check_files(inputs, &[Role::new("--out", path)])?;
     Ok(Output::create(path)?)
 }
 

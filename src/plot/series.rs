@@ -24,7 +24,7 @@ use super::{
 };
 use crate::cli::PlotSeriesArgs;
 use crate::error::Error;
-use crate::io::RunRecord;
+use crate::io::{Role, RunRecord, folder_of};
 use crate::messages::warn;
 use crate::model::Model;
 
@@ -62,7 +62,29 @@ pub struct SeriesData {
 
 /// `sisfilt plot series`.
 pub fn run(args: &PlotSeriesArgs) -> Result<()> {
-    let out = open_output(&args.out)?;
+    let mut inputs = vec![
+        Role::new("--truth", &args.truth),
+        Role::new("--estimates", &args.estimates),
+    ];
+    let optional = [
+        ("--smoothed", &args.smoothed),
+        ("--meas", &args.meas),
+        ("--config", &args.config),
+    ];
+    for (what, path) in optional {
+        if let Some(path) = path {
+            inputs.push(Role::new(what, path));
+        }
+    }
+    // Without --config, the model comes from the run record beside the measurements.
+    let records: Vec<PathBuf> = match (&args.meas, &args.config) {
+        (Some(meas), None) => [meas, &args.truth]
+            .map(|p| folder_of(p).join(RunRecord::FILE))
+            .into(),
+        _ => Vec::new(),
+    };
+    inputs.extend(records.iter().map(|p| Role::new("the run record", p)));
+    let out = open_output(&args.out, &inputs)?;
     let data = read(args)?;
     let svg = render(&data)?;
     commit_svg(out, &svg)
@@ -216,19 +238,13 @@ fn measurement_model(config: Option<&Path>, meas: &Path, truth: &Path) -> Result
     if let Some(path) = config {
         return Ok(Some(crate::commands::load_model(path)?.1));
     }
-    let dir_of = |p: &Path| -> PathBuf {
-        match p.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        }
-    };
-    let mut dirs = vec![dir_of(meas)];
-    if dir_of(truth) != dirs[0] {
-        dirs.push(dir_of(truth));
+    let mut dirs = vec![folder_of(meas)];
+    if folder_of(truth) != dirs[0] {
+        dirs.push(folder_of(truth));
     }
     for dir in dirs {
         let record_path = dir.join(RunRecord::FILE);
-        let model = RunRecord::load(&dir).and_then(|record| match record {
+        let model = RunRecord::load(dir).and_then(|record| match record {
             Some(r) => Model::from_config(&r.config_source(&record_path)?).map(Some),
             None => Ok(None),
         });
