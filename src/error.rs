@@ -115,3 +115,24 @@ impl Error {
 
 /// Result with the library's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The first subsystem holding a value that is not finite is named, 1-based; in a Monte
+    /// Carlo study the run too; a breakdown is an internal failure (exit 1).
+    #[test]
+    fn a_breakdown_names_t_i_and_the_run() {
+        let values = [0.0, 1.0, 2.0, f64::NAN, 4.0, f64::INFINITY];
+        let err = Error::check_finite(7, 2, &values, || "overflow".into()).unwrap_err();
+        assert_eq!(err.to_string(), "t = 7, i = 2: overflow");
+        let in_run = Error::InRun {
+            run: 3,
+            error: Box::new(err),
+        };
+        assert_eq!(in_run.to_string(), "run 3, t = 7, i = 2: overflow");
+        assert_eq!(in_run.exit_code(), 1);
+        assert!(Error::check_finite(1, 2, &[1.0, 2.0, -3.0], || panic!("all finite")).is_ok());
+    }
+}

@@ -687,13 +687,7 @@ impl Sweep {
             format!("{v:.4e}")
         });
         // As in the table of one evaluation.
-        s += &block("ANEES", &|a| a.anees, &|v| {
-            if v < 1e4 {
-                format!("{v:.4}")
-            } else {
-                format!("{v:.3e}")
-            }
-        });
+        s += &block("ANEES", &|a| a.anees, &|v| figure(v));
         let mut notes: Vec<String> = Vec::new();
         for (k, name) in names.iter().enumerate() {
             let skipped: Vec<String> = self
@@ -762,14 +756,8 @@ impl Evaluation {
                     for r in &a.rmse {
                         s += &format!(" {r:>10.4e}");
                     }
-                    let ratio = f.rmse_ratio.map_or("-".into(), |r| format!("{r:.4}"));
-                    let anees = a.anees.map_or("inf".into(), |v| {
-                        if v < 1e4 {
-                            format!("{v:.4}")
-                        } else {
-                            format!("{v:.3e}")
-                        }
-                    });
+                    let ratio = f.rmse_ratio.map_or("-".into(), figure);
+                    let anees = a.anees.map_or("inf".into(), figure);
                     s += &format!(
                         " {ratio:>9} {anees:>10} {:>17} {:>8} {:>9.2}\n",
                         format!("[{:.3}, {:.3}]", a.anees_band[0], a.anees_band[1]),
@@ -803,5 +791,15 @@ impl Evaluation {
             s += &format!("note: {note}\n");
         }
         s
+    }
+}
+
+/// A ratio or an ANEES in the tables: four decimals, or three significant digits once it
+/// reaches 10⁴ (a diverging filter's figures would fill the line).
+fn figure(v: f64) -> String {
+    if v < 1e4 {
+        format!("{v:.4}")
+    } else {
+        format!("{v:.3e}")
     }
 }

@@ -333,6 +333,23 @@ pub fn ends_early(shorter: &str, longer: &str, t: usize) -> Error {
     }
 }
 
+/// `|x̂ − x|` of subsystem `i` (0-based) at step `t`; an error when the difference of two
+/// finite numbers overflows f64, which no figure can show.
+pub fn drawable_error(t: usize, i: usize, estimate: f64, truth: f64) -> Result<f64> {
+    let e = (estimate - truth).abs();
+    if e.is_finite() {
+        Ok(e)
+    } else {
+        Err(Error::Numerical {
+            t,
+            i: i + 1,
+            msg: format!(
+                "the error x̂ − x = {estimate:e} − ({truth:e}) overflows f64: nothing can be drawn"
+            ),
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

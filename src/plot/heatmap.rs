@@ -11,7 +11,7 @@ use anyhow::Result;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use super::data::{EstimatesFile, TruthFile, ends_early, same_chain};
+use super::data::{EstimatesFile, TruthFile, drawable_error, ends_early, same_chain};
 use super::{
     Area, DESC_SIZE, LABEL_SIZE, TITLE_SIZE, WIDTH, commit_svg, draw_centered, fmt_tick, font,
     open_output,
@@ -80,14 +80,14 @@ pub fn read(args: &PlotHeatmapArgs) -> Result<ErrorMap> {
     loop {
         let t_truth = truth.reader.read_step(&mut x_true)?;
         let t_est = est.read_step(&mut x_est)?;
-        match (t_truth, t_est) {
+        let t = match (t_truth, t_est) {
             (None, None) => break,
             (Some(t), None) => return Err(ends_early(est.name(), &truth_name, t - 1).into()),
             (None, Some(t)) => return Err(ends_early(&truth_name, est.name(), t - 1).into()),
-            (Some(_), Some(_)) => {}
-        }
+            (Some(t), Some(_)) => t,
+        };
         for i in 0..big_n {
-            let e = (x_est[i * width + k] - x_true[i * (n + 1) + k]).abs();
+            let e = drawable_error(t, i, x_est[i * width + k], x_true[i * (n + 1) + k])?;
             let v = if args.plain {
                 e
             } else {
@@ -173,10 +173,9 @@ impl Scale {
         match *self {
             Scale::Linear { max } => {
                 let step = nice_step(max / 5.0);
-                (0..)
-                    .map(|j| j as f64 * step)
-                    .take_while(|v| *v <= max * (1.0 + 1e-9))
-                    .collect()
+                // Counted, not compared with max·(1 + ε), which overflows near f64's limit.
+                let last = (max / step + 1e-9).floor().clamp(0.0, 10.0) as usize;
+                (0..=last).map(|j| j as f64 * step).collect()
             }
             Scale::Log { lo, hi } => {
                 let (a, b) = (lo.log10().round() as i32, hi.log10().round() as i32);
@@ -454,6 +453,18 @@ mod tests {
         assert_eq!(nice_step(2.2), 2.5);
         assert_eq!(nice_step(30.0), 50.0);
         assert_eq!(nice_step(0.031), 0.05);
+    }
+
+    /// The linear colour bar's ticks: multiples of the nice step up to the maximum, also
+    /// where `max · (1 + ε)` would overflow.
+    #[test]
+    fn linear_ticks_end_at_the_maximum() {
+        let ticks = Scale::Linear { max: 3.0 }.ticks();
+        assert_eq!(ticks, vec![0.0, 1.0, 2.0, 3.0]);
+        let ticks = Scale::Linear { max: f64::MAX }.ticks();
+        assert!((2..=11).contains(&ticks.len()), "{ticks:?}");
+        assert!(ticks.iter().all(|v| v.is_finite() && *v <= f64::MAX));
+        assert_eq!(Scale::Linear { max: 0.0 }.ticks(), vec![0.0]);
     }
 
     #[test]

@@ -16,7 +16,9 @@ use anyhow::Result;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
-use super::data::{EstimatesFile, MeasurementFile, TruthFile, ends_early, same_chain};
+use super::data::{
+    EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, same_chain,
+};
 use super::{
     Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, PALETTE,
     SMOOTHED, Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick,
@@ -183,6 +185,7 @@ pub fn read(args: &PlotSeriesArgs) -> Result<SeriesData> {
         if t_est.is_none() {
             return Err(ends_early(est.name(), &truth_name, t - 1).into());
         }
+        drawable_error(t, i, x_est[i * width + k], x_true[i * (n + 1) + k])?;
         data.truth.push(x_true[i * (n + 1) + k]);
         data.gamma.push(x_true[i * (n + 1) + n] != 0.0);
         data.estimate.x.push(x_est[i * width + k]);
@@ -191,6 +194,7 @@ pub fn read(args: &PlotSeriesArgs) -> Result<SeriesData> {
             if s.read_step(&mut x_smooth)?.is_none() {
                 return Err(ends_early(s.name(), &truth_name, t - 1).into());
             }
+            drawable_error(t, i, x_smooth[i * width + k], x_true[i * (n + 1) + k])?;
             track.x.push(x_smooth[i * width + k]);
             track.var.push(x_smooth[i * width + var_at]);
         }
@@ -383,15 +387,21 @@ struct ValueAxis {
     strip: (f64, f64),
 }
 
-/// The vertical axis for data in `lo..hi`.
-fn with_strip(lo: f64, hi: f64) -> ValueAxis {
+/// The vertical axis for data in `lo..hi`; an error when its span overflows f64.
+fn with_strip(lo: f64, hi: f64) -> Result<ValueAxis> {
     let y = padded(lo, hi, 0.04);
     let span = y.end - y.start;
+    if !span.is_finite() {
+        return Err(Error::Usage(format!(
+            "the values to draw span {lo:e} to {hi:e}, more than f64 can hold: nothing can be drawn"
+        ))
+        .into());
+    }
     let strip = (y.start - 0.09 * span, y.start - 0.02 * span);
-    ValueAxis {
+    Ok(ValueAxis {
         range: strip.0 - 0.01 * span..y.end,
         strip,
-    }
+    })
 }
 
 type Chart<'a, 'b> = ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
@@ -508,7 +518,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     }
     legend.push(lost_entry(d));
 
-    let axis = with_strip(range.0, range.1);
+    let axis = with_strip(range.0, range.1)?;
     let mut ch = chart(
         area,
         &format!(
@@ -568,7 +578,7 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
         ));
     }
     legend.push(lost_entry(d));
-    let axis = with_strip(-bound, bound);
+    let axis = with_strip(-bound, bound)?;
     let mut ch = chart(
         area,
         &format!(
@@ -609,7 +619,7 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
         Swatch::None,
         format!("Not drawn over x{}: {}.", d.state, m.why_separate),
     ));
-    let axis = with_strip(range.0, range.1);
+    let axis = with_strip(range.0, range.1)?;
     let mut ch = chart(
         area,
         &format!(
