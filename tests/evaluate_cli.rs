@@ -189,3 +189,64 @@ fn smoother_fallback_is_announced() {
     assert_eq!(row["notes"].as_array().unwrap().len(), 1);
     assert!(row["rmse_ratio_to_filter"].as_f64().unwrap() < 1.0);
 }
+
+/// A filter whose estimates overflow in a run (the paper's transfer recursion on a rod of 400
+/// segments) is reported as failed, naming the run, `t` and `i`; none of its numbers reach
+/// the table or the JSON, and the other filters keep their figures.
+#[test]
+fn a_filter_that_breaks_down_is_named_with_its_run_and_writes_no_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let rod = std::fs::read_to_string(configs().join("heat_rod.toml")).unwrap();
+    let long_rod: String = rod
+        .lines()
+        .map(|l| match l.split_once(" = ").map(|(k, _)| k) {
+            Some("subsystems") => "subsystems = 400".to_string(),
+            Some("steps") => "steps = 5".to_string(),
+            _ => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let config = dir.path().join("long_rod.toml");
+    std::fs::write(&config, long_rod).unwrap();
+    let out = dir.path().join("eval.json");
+    let run = Command::cargo_bin("sisfilt")
+        .unwrap()
+        .arg("evaluate")
+        .arg(&config)
+        .args([
+            "--runs",
+            "2",
+            "--filters",
+            "distributed,distributed-paper",
+            "--out",
+        ])
+        .arg(&out)
+        .assert()
+        .success();
+    let table = String::from_utf8_lossy(&run.get_output().stdout).to_string();
+    assert!(
+        table.contains("note: distributed-paper: failed: run 1, t = 1, i = "),
+        "{table}"
+    );
+    let rows = table.lines().skip(3).take_while(|l| !l.is_empty());
+    for row in rows {
+        assert!(!row.contains("inf") && !row.contains("NaN"), "{row}");
+    }
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
+    let filters = doc["filters"].as_array().unwrap();
+    let by_name = |name: &str| filters.iter().find(|f| f["name"] == name).unwrap();
+    let paper = by_name("distributed-paper");
+    assert!(paper["accuracy"].is_null(), "{paper}");
+    assert!(
+        paper["skipped"]
+            .as_str()
+            .unwrap()
+            .starts_with("failed: run 1, t = 1, i = "),
+        "{paper}"
+    );
+    let rmse = by_name("distributed")["accuracy"]["rmse_overall"]
+        .as_f64()
+        .unwrap();
+    assert!(rmse.is_finite() && rmse > 0.0, "{rmse}");
+}
