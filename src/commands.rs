@@ -677,7 +677,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
         (steps * big_n) as f64 / elapsed.max(1e-9)
     ));
-    let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
+    let report = truth.is_some().then(|| scored(&accuracy)).transpose()?;
     if let Some(r) = &report {
         report_accuracy(r);
     }
@@ -790,11 +790,24 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
             }
         }
     }
-    let report: Option<AccuracyReport> = truth.is_some().then(|| accuracy.report());
+    let report = truth.is_some().then(|| scored(&accuracy)).transpose()?;
     if let Some(r) = &report {
         report_accuracy(r);
     }
     Ok(writer.commit(report.as_ref())?)
+}
+
+/// The accuracy figures of a run scored against `--truth`; an error when not one term was
+/// scored, since figures over nothing would read as a perfect score.
+fn scored(accuracy: &Accuracy) -> Result<AccuracyReport> {
+    let report = accuracy.report();
+    if report.terms == 0 {
+        return Err(Error::Usage(
+            "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
+        )
+        .into());
+    }
+    Ok(report)
 }
 
 /// Reads the truth of step `t` into `out`; a truth file that ends before the measurements is
