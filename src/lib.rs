@@ -1,5 +1,10 @@
 //! `sisfilt`: distributed recursive filtering for spatially interconnected systems with
-//! randomly occurring missing measurements (the paper by Bai Li, corrected by `SPEC.md`).
+//! randomly occurring missing measurements (the paper by Bai Li, with its errata corrected).
+//!
+//! The maths lives in `docs/theory.md`, rendered here as the module [`theory`]: the model,
+//! both steps of the paper's filter, the centralized and joint band-k filters, the smoothers,
+//! the accuracy figures and the numerical safeguards, in numbered sections that the code cites
+//! as `docs/theory.md §n`.
 //!
 //! # Notation (SPEC §1)
 //! A chain of `N` subsystems `i = 1..N` over time `t = 1..T`; subsystem `i` has state
@@ -24,6 +29,7 @@
 //! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
 //! - [`plot`]: SVG figures from those files.
 //! - [`cli`], [`commands`]: the command line; [`messages`]: the one format of standard error.
+//! - [`theory`]: `docs/theory.md`, the maths that the modules above cite.
 
 // Index loops mirror the formulas of SPEC.md; iterator chains would hide them.
 #![allow(clippy::needless_range_loop)]
@@ -47,5 +53,9 @@ pub mod model;
 pub mod plot;
 pub mod simulate;
 pub mod smoother;
+
+/// The document `docs/theory.md`, included so that `cargo doc` holds it beside the code.
+#[doc = include_str!("../docs/theory.md")]
+pub mod theory {}
 
 pub use error::{Error, Result};
