@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
-"""Baseline for the benchmarks: the two-step distributed filter of SPEC §2–§3 written the way a
+"""Baseline for the benchmarks: the two-step distributed filter of docs/theory.md §2, §4 written the way a
 numpy/FilterPy user would, one subsystem at a time in a Python loop.
 
 Usage: baseline.py CONFIG MEASUREMENTS INPUTS OUT
 
 Reads a sisfilt config (no overrides, unknown dropouts), the measurement and input CSVs, and
-writes the estimates CSV of SPEC §6 (x̂(t|t), upper triangle of P(t|t)). Default options of
+writes the estimates CSV of docs/theory.md §13 (x̂(t|t), upper triangle of P(t|t)). Default options of
 sisfilt: banded step-1 solve (here a dense solve of the link equations with numpy), local
 second moment, step 1 fed by the filtered estimates, Joseph-form covariance update.
 """
@@ -40,7 +40,7 @@ def main():
     y = y[:, 2:].reshape(T, N, q)
     u = u[:, 2:].reshape(T, N, m) if m > 0 else np.zeros((T, N, 0))
 
-    # The link equations of SPEC §2 as one dense matrix (factorised once: G is constant).
+    # The link equations of docs/theory.md §2 as one dense matrix (factorised once: G is constant).
     G11, G12, G21, G22 = G[:pp, :pp], G[:pp, pp:], G[pp:, :pp], G[pp:, pp:]
     L = N - 1
     K = np.eye(L * s)

@@ -295,7 +295,7 @@ def write(results, out_md):
             "## Smoothing memory on W (issue 12)",
             "",
             "`sisfilt estimate --meas W/measurements.csv --smooth --out W/smoothed.csv` (the",
-            "distributed smoother, default threads) against the estimate of SPEC §10 that",
+            "distributed smoother, default threads) against the estimate of docs/theory.md §9 that",
             f"`sisfilt check` prints for the config ({estimate}): the stored forward pass",
             "`x̂(t|t)`, `x̂(t+1|t)`, `P(t|t)`, `T(t+1)` and the smoothed output, `T·N·(3n + 3n²)·8`",
             "bytes.",
@@ -327,7 +327,7 @@ def write(results, out_md):
             )
         lines += [
             "",
-            "The centralized filter is the optimal linear estimator (SPEC §5) at `O((N·n)³)` per",
+            "The centralized filter is the optimal linear estimator (docs/theory.md §7) at `O((N·n)³)` per",
             "step (asymptotically 27× the time for every tripling of N); the distributed one is",
             "linear in N. The centralized filter is worth running as the yardstick, or for its",
             "honest covariance, on chains of up to about a hundred subsystems, where a step costs",

@@ -146,7 +146,7 @@ for threads in 1 "$THREADS"; do
         --out "$WORK/W/estimates.csv" --timings
 done
 rm -f "$WORK/W/estimates.csv" "$WORK/W/truth.csv"
-# Smoothing stores the forward pass: peak RSS against SPEC §10's estimate (`sisfilt check`).
+# Smoothing stores the forward pass: peak RSS against docs/theory.md §9's estimate (`sisfilt check`).
 log "workload W: estimate --smooth (distributed smoother)"
 measure W-smooth "$THREADS" estimate --meas "$WORK/W/measurements.csv" --smooth \
     --out "$WORK/W/smoothed.csv"

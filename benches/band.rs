@@ -1,4 +1,4 @@
-//! Block-band kernels of SPEC §9 (`cargo bench --bench band`) at the joint filter's working
+//! Block-band kernels of docs/theory.md §8 (`cargo bench --bench band`) at the joint filter's working
 //! point: `nb = 1000` blocks of `bs = 2`, band `k = 2`, `A_eff` half-width `b = 16` (so the
 //! predict step extends the posterior to `w = k + 2b = 34`). Throughput is in block rows;
 //! flops per block row (leading terms): sandwich `2bs³(2b+1)(k+2b+2)`, selected inversion

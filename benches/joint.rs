@@ -1,4 +1,4 @@
-//! Throughput of the joint band-k filter and its smoother (SPEC §9, §10) without I/O
+//! Throughput of the joint band-k filter and its smoother (docs/theory.md §8, §9) without I/O
 //! (`cargo bench --bench joint`), on `bench/scattering.toml` (n = 2, K = 2, b = 15), in
 //! subsystem-steps per second. Groups:
 //! - `joint_filter`: N = 10, 30, 10², 10³, 10⁴ (time per element flat means linear in N), beside the

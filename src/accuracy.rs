@@ -1,4 +1,4 @@
-//! Accuracy figures against a known truth (SPEC §3): RMSE per state element and the average
+//! Accuracy figures against a known truth (docs/theory.md §11): RMSE per state element and the average
 //! NEES with its resolution floor.
 
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
@@ -45,7 +45,7 @@ pub struct AccuracyReport {
     pub terms: u64,
     /// Terms in the ANEES.
     pub nees_terms: u64,
-    /// Terms left out under the resolution floor (SPEC §3).
+    /// Terms left out under the resolution floor (docs/theory.md §11).
     pub nees_left_out: u64,
     /// Terms with a resolved error against a zero claimed variance.
     pub nees_infinite: u64,

@@ -10,7 +10,7 @@ use crate::interconnect::SolverKind;
 use crate::io::estimates::Format;
 
 /// Distributed state estimation for chains of interconnected subsystems whose sensors drop
-/// measurements at random (two-step filter of Bai Li's paper, with the corrections of SPEC §8).
+/// measurements at random (two-step filter of Bai Li's paper, with the corrections of docs/theory.md §6).
 #[derive(Debug, Parser)]
 #[command(name = "sisfilt", version, about, long_about = None)]
 pub struct Cli {
@@ -77,7 +77,7 @@ pub enum Command {
     },
 }
 
-/// The figures of `sisfilt plot` (SPEC §7); each writes one SVG file.
+/// The figures of `sisfilt plot` (docs/theory.md §13); each writes one SVG file.
 #[derive(Debug, Subcommand)]
 pub enum PlotCommand {
     /// One state element of one subsystem against time: truth, estimate with its ±2σ band,
@@ -177,7 +177,7 @@ pub struct EvaluateArgs {
     /// distributed-smoother, joint-smoother, centralized-smoother.
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     pub filters: Vec<String>,
-    /// Also run the smoothers of SPEC §10 (distributed-smoother, joint-smoother,
+    /// Also run the smoothers of docs/theory.md §9 (distributed-smoother, joint-smoother,
     /// centralized-smoother); their RMSE ratio is to the centralized smoother.
     #[arg(long)]
     pub smooth: bool,
@@ -192,12 +192,12 @@ pub struct EvaluateArgs {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum FilterKind {
-    /// The two-step distributed filter of the paper (SPEC §2–§3).
+    /// The two-step distributed filter of the paper (docs/theory.md §2, §4).
     Distributed,
-    /// The optimal linear filter on the lifted system (SPEC §5): O((N·n)³) per step, a
+    /// The optimal linear filter on the lifted system (docs/theory.md §7): O((N·n)³) per step, a
     /// yardstick; ignores --solver, --second-moment and --interconnect-from.
     Centralized,
-    /// The joint band-k filter (SPEC §9): the lifted covariance on a band of width --band,
+    /// The joint band-k filter (docs/theory.md §8): the lifted covariance on a band of width --band,
     /// honest covariances and near-optimal accuracy at a cost linear in N; ignores --solver
     /// and --interconnect-from.
     Joint,
@@ -253,7 +253,7 @@ pub struct EstimateArgs {
     #[arg(long, default_value_t = crate::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
     /// Write the smoothed x̂(t|T) with P(t|T), from every measurement of the file, instead of
-    /// the filtered estimates (SPEC §10): per-subsystem RTS for distributed, RTS for
+    /// the filtered estimates (docs/theory.md §9): per-subsystem RTS for distributed, RTS for
     /// centralized, the information form for joint.
     #[arg(long, conflicts_with = "predicted")]
     pub smooth: bool,

@@ -208,7 +208,7 @@ fn check(path: &Path) -> Result<()> {
         report.push(joint_line);
         if rho.value >= 1.0 {
             warnings.push(format!(
-                "t = {}..{last}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (SPEC §3)",
+                "t = {}..{last}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
                 w.first, rho.value
             ));
         }
@@ -523,11 +523,11 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
 
     if args.filter == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
         warn(
-            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (SPEC §3); --filter joint keeps it honest (SPEC §9)",
+            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
         );
         if args.smooth {
             warn(
-                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (SPEC §10); --filter joint --smooth is the remedy",
+                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
             );
         }
     }
@@ -535,7 +535,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
         let rho = spectral_radius(&model, 1, ESTIMATE_POWER_STEPS)?;
         if rho.value >= 1.0 {
             warn(format!(
-                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (SPEC §3)",
+                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
                 rho.value
             ));
         }
@@ -697,7 +697,7 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
     Ok(())
 }
 
-/// The smoother of `--filter` (SPEC §10).
+/// The smoother of `--filter` (docs/theory.md §9).
 fn make_smoother<'m>(
     args: &EstimateArgs,
     model: &'m Model,
@@ -844,7 +844,7 @@ fn finish_inputs(meas_name: &str, steps: usize, inputs: InputStream) -> Result<(
 }
 
 /// The joint filter's options from the command line (`None` for the other filters, which
-/// reject the joint filter's options: SPEC §7).
+/// reject the joint filter's options: docs/theory.md §13).
 fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
     if args.filter != FilterKind::Joint {
         let only_joint = [
@@ -928,12 +928,12 @@ impl PhaseClock {
     }
 }
 
-/// Prints accuracy figures on standard error, with the NEES warning of SPEC §3.
+/// Prints accuracy figures on standard error, with the NEES warning of docs/theory.md §11.
 fn report_accuracy(r: &AccuracyReport) {
     crate::messages::report("accuracy", r.summary());
     if r.nees_left_out > 0 {
         warn(format!(
-            "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
+            "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (docs/theory.md §11)",
             r.nees_left_out, r.terms
         ));
     }
@@ -1006,7 +1006,7 @@ fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
     print_stdout(result.table().trim_end_matches('\n'))
 }
 
-/// The NEES warning of SPEC §3 for each filter of an evaluation.
+/// The NEES warning of docs/theory.md §11 for each filter of an evaluation.
 fn warn_left_out(result: &crate::evaluate::Evaluation, context: &str) {
     for f in &result.filters {
         for note in &f.notes {
@@ -1014,7 +1014,7 @@ fn warn_left_out(result: &crate::evaluate::Evaluation, context: &str) {
         }
         if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
             warn(format!(
-                "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (SPEC §3)",
+                "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (docs/theory.md §11)",
                 f.name, a.nees_left_out, a.terms
             ));
         }

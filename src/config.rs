@@ -1,4 +1,4 @@
-//! The TOML config of SPEC §6, read as it is written. These raw structs only mirror the file
+//! The TOML config of docs/theory.md §13, read as it is written. These raw structs only mirror the file
 //! (unknown keys are rejected); [`crate::model::Model::from_config`] checks them once and turns
 //! them into a validated model. Nothing downstream reads these structs again.
 #![allow(non_snake_case)]
@@ -133,7 +133,7 @@ pub struct RawInput {
     pub path: Option<String>,
 }
 
-/// The input generators of SPEC §6.
+/// The input generators of docs/theory.md §13.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum InputKind {

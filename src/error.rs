@@ -38,7 +38,7 @@ pub enum Error {
     #[error("{0}")]
     Usage(String),
 
-    /// The interconnection equations (SPEC §2) of a config have no unique solution at `t`.
+    /// The interconnection equations (docs/theory.md §2) of a config have no unique solution at `t`.
     #[error("{file}: interconnection system at t = {t} is not well posed: {msg}")]
     IllPosed { file: String, t: usize, msg: String },
 
@@ -58,7 +58,7 @@ pub enum Error {
 }
 
 impl Error {
-    /// 2 for bad input (config, CSV, arguments), 1 for internal failure (SPEC §7).
+    /// 2 for bad input (config, CSV, arguments), 1 for internal failure (docs/theory.md §13).
     pub fn exit_code(&self) -> u8 {
         match self {
             Error::Numerical { .. } => 1,

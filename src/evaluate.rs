@@ -1,4 +1,4 @@
-//! Monte Carlo comparison of filters (SPEC §3, §5, §7 `evaluate`): every filter runs on the
+//! Monte Carlo comparison of filters (docs/theory.md §4, §7, §13 `evaluate`): every filter runs on the
 //! same simulated realisations; RMSE, RMSE ratio to the centralized Nahi filter (the optimal
 //! linear estimator) and average NEES with its 95 % band are reported per filter.
 //!
@@ -25,7 +25,7 @@ use crate::smoother::{
     CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherSchedule,
 };
 
-/// The filters compared, in table order; the smoothers (SPEC §10) run with `--smooth`.
+/// The filters compared, in table order; the smoothers (docs/theory.md §9) run with `--smooth`.
 pub const FILTERS: [&str; 9] = [
     "distributed",
     "distributed-paper",
@@ -61,7 +61,7 @@ pub struct EvaluateOptions {
     /// The filters to run (names of [`FILTERS`]); empty means all filters, and the
     /// smoothers too with `smooth`.
     pub filters: Vec<String>,
-    /// Also run the smoothers (SPEC §10).
+    /// Also run the smoothers (docs/theory.md §9).
     pub smooth: bool,
 }
 
@@ -174,7 +174,7 @@ const MAX_REALISATION_BYTES: usize = 1 << 30;
 /// runs in full for every run.
 const MAX_SCHEDULE_BYTES: usize = 1 << 30;
 
-/// The covariance passes computed once for all runs (SPEC §5, §9, §10).
+/// The covariance passes computed once for all runs (docs/theory.md §7, §8, §9).
 #[derive(Default)]
 struct Schedules<'m> {
     centralized: Option<CentralizedSchedule<'m>>,
@@ -339,7 +339,7 @@ fn run_filters(
                 Ok(())
             };
             if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
-                // The filter's means, then the stored backward gains (SPEC §10).
+                // The filter's means, then the stored backward gains (docs/theory.md §9).
                 let mut f = match schedule.forward {
                     Some(joint) => Box::new(JointFilter::new(model, joint)?),
                     None => {
@@ -494,7 +494,7 @@ pub fn evaluate(
     for (k, name) in FILTERS.iter().enumerate() {
         // A smoother whose backward pass fails is left to the runs, which report the error.
         // The two-step filter's covariances depend on the data (its local moment propagates
-        // the realised `B v̂`, SPEC §3), so the distributed smoother runs in full every time.
+        // the realised `B v̂`, docs/theory.md §4), so the distributed smoother runs in full every time.
         let schedule = if active[k]
             && is_smoother(name)
             && *name != "distributed-smoother"
@@ -748,7 +748,7 @@ impl Evaluation {
                 (Some(a), _) => {
                     if !a.rmse_overall.is_finite() {
                         notes.push(format!(
-                            "{}: its estimates overflowed (with --paper this is the transfer solver on a long chain, SPEC §2)",
+                            "{}: its estimates overflowed (with --paper this is the transfer solver on a long chain, docs/theory.md §2)",
                             f.name
                         ));
                     }

@@ -1,5 +1,5 @@
 //! The inputs `u(t, ·)`, one time step at a time: generated from the config's `[input]`, or
-//! read from an inputs CSV (SPEC §6), which must hold exactly the steps `1..T`.
+//! read from an inputs CSV (docs/theory.md §13), which must hold exactly the steps `1..T`.
 
 use std::fs::File;
 use std::io::Read;
@@ -107,7 +107,7 @@ impl InputStream {
         }
     }
 
-    /// Checks that a file held no steps beyond `steps` (SPEC §6: exactly `1..T`).
+    /// Checks that a file held no steps beyond `steps` (docs/theory.md §13: exactly `1..T`).
     pub fn finish(self, steps: usize) -> Result<()> {
         if let InputStream::File(mut r) = self {
             let mut scratch = vec![0.0; r.row_values()];

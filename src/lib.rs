@@ -6,7 +6,7 @@
 //! the accuracy figures and the numerical safeguards, in numbered sections that the code cites
 //! as `docs/theory.md §n`.
 //!
-//! # Notation (SPEC §1)
+//! # Notation (docs/theory.md §1)
 //! A chain of `N` subsystems `i = 1..N` over time `t = 1..T`; subsystem `i` has state
 //! `x ∈ Rⁿ`, input `u ∈ Rᵐ`, measurement `y ∈ R^q` and interconnection signals
 //! `v = [v⁺; v⁻]` (in), `w = [w⁺; w⁻]` (out):
@@ -18,20 +18,20 @@
 //! y(t,i)   = γ J x + R u + d,   d ~ N(0, M),   γ ~ Bernoulli(p)        (P5)
 //! ```
 //!
-//! `S` denotes the raw second moment `E[x xᵀ]` of SPEC §3, never the chain length.
+//! `S` denotes the raw second moment `E[x xᵀ]` of docs/theory.md §4, never the chain length.
 //!
 //! # Modules, in data-flow order
 //! - [`config`]: the TOML as written; [`model`]: the validated model and parameters at `(t, i)`.
 //! - [`inputs`]: `u(t, ·)`; [`simulate`]: the true system with dropouts.
 //! - [`interconnect`]: step 1, the chain solve (on [`band_lu`]); [`lifted`]: the lifted system.
-//! - [`band`]: block-banded matrices for the joint band-`k` filter (SPEC §9): max-entropy
+//! - [`band`]: block-banded matrices for the joint band-`k` filter (docs/theory.md §8): max-entropy
 //!   completion precision, banded Cholesky, selected inversion, banded sandwich products.
 //! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
 //! - [`plot`]: SVG figures from those files.
 //! - [`cli`], [`commands`]: the command line; [`messages`]: the one format of standard error.
 //! - [`theory`]: `docs/theory.md`, the maths that the modules above cite.
 
-// Index loops mirror the formulas of SPEC.md; iterator chains would hide them.
+// Index loops mirror the formulas of docs/theory.md; iterator chains would hide them.
 #![allow(clippy::needless_range_loop)]
 
 pub mod accuracy;

@@ -1,6 +1,6 @@
-//! The lifted system of SPEC §5: the whole chain as one linear system
+//! The lifted system of docs/theory.md §3: the whole chain as one linear system
 //! `X⁺ = A_eff X + U_eff U + Ω`, with `A_eff = blkdiag(A) + blkdiag(B) L_x`, where
-//! `V = L_x X + L_u U` is the interconnection solve of SPEC §2.
+//! `V = L_x X + L_u U` is the interconnection solve of docs/theory.md §2.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -12,7 +12,7 @@ use crate::model::Model;
 
 /// Largest `N · n` for which [`spectral_radius`] computes all eigenvalues of a dense `A_eff`;
 /// above it, it estimates by power iteration.
-pub const EXACT_SPECTRUM_MAX: usize = 1200;
+pub const EXACT_RADIUS_MAX: usize = 1200;
 
 /// Scratch for [`apply_a_eff`] and [`propagate_mean`].
 #[derive(Debug, Default, Clone)]
@@ -42,8 +42,8 @@ pub fn apply_a_eff(
     propagate_mean(model, t, solver, x, None, out, ws);
 }
 
-/// `out = A_eff(t) x + U_eff(t) u` without forming either matrix (SPEC §5, §9 predict step
-/// 1): `z(i) = D x(i) + H u(i)`, `v` from the chain solve of SPEC §2, and
+/// `out = A_eff(t) x + U_eff(t) u` without forming either matrix (docs/theory.md §3, §8 predict step
+/// 1): `z(i) = D x(i) + H u(i)`, `v` from the chain solve of docs/theory.md §2, and
 /// `out(i) = A x(i) + B v(i) + C u(i)`. `u = None` means no input. The `v` used is left in
 /// [`LiftedWorkspace::interconnection`]. `solver` must be prepared for `t`.
 pub fn propagate_mean(
@@ -97,10 +97,10 @@ pub fn a_eff_dense(model: &Model, t: usize, solver: &ChainSolver) -> DMatrix<f64
     a
 }
 
-/// First trial half-width of [`a_eff_band`] (SPEC §9 predict step 2).
+/// First trial half-width of [`a_eff_band`] (docs/theory.md §8 predict step 2).
 const FIRST_TRIAL_HALF_WIDTH: usize = 16;
 
-/// The block band of `A_eff(t)` by column compression (Curtis–Powell–Reid; SPEC §9 predict
+/// The block band of `A_eff(t)` by column compression (Curtis–Powell–Reid; docs/theory.md §8 predict
 /// step 2). For a trial half-width `b_m` and period `p = 2 b_m + 1`, each of the `p·n` probes
 /// `Z^{(r,c)}` has block `j` equal to `e_c` when `j ≡ r (mod p)`, so that
 /// `A_eff(i, j)[:, c] = (A_eff Z^{(j mod p, c)})_i` for `|i − j| ≤ b_m`: only one such `j`
@@ -175,12 +175,12 @@ pub struct SpectralRadius {
 }
 
 /// Spectral radius of `A_eff(t)`: exact (all eigenvalues of the dense matrix) for
-/// `N n ≤ EXACT_SPECTRUM_MAX`, else a power-iteration estimate
+/// `N n ≤ EXACT_RADIUS_MAX`, else a power-iteration estimate
 /// `ρ ≈ (‖A^K x‖ / ‖A^{K/2} x‖)^{2/K}` from a fixed start vector, `K = power_steps`.
 pub fn spectral_radius(model: &Model, t: usize, power_steps: usize) -> Result<SpectralRadius> {
     let solver = ChainSolver::new(model, t)?;
     let size = model.subsystems * model.dims.n;
-    if size <= EXACT_SPECTRUM_MAX {
+    if size <= EXACT_RADIUS_MAX {
         let a = a_eff_dense(model, t, &solver);
         // nalgebra's Schur iteration can stall on the clustered spectra of long chains;
         // faer's eigenvalue solver uses exceptional shifts and does not.
@@ -222,7 +222,7 @@ pub fn spectral_radius(model: &Model, t: usize, power_steps: usize) -> Result<Sp
     })
 }
 
-/// The dense lifted matrices of SPEC §5 at one time: `X⁺ = A_eff X + U_eff U + Ω`,
+/// The dense lifted matrices of docs/theory.md §3 at one time: `X⁺ = A_eff X + U_eff U + Ω`,
 /// `Ω ~ N(0, Q_big)`. `O((Nn)²)` memory: for reference filters on moderate chains.
 #[derive(Debug, Clone)]
 pub struct LiftedSystem {
@@ -293,7 +293,7 @@ impl LiftedSystem {
     }
 }
 
-/// The exact first and second moments of the lifted state (SPEC §3 `lifted`, §5):
+/// The exact first and second moments of the lifted state (docs/theory.md §4 `lifted`, §3):
 /// `m⁺ = A_eff m + U_eff U`, `P⁺ = A_eff P A_effᵀ + Q_big`, `S_ii = P_ii + m_i m_iᵀ`.
 #[derive(Debug, Clone)]
 pub struct LiftedMoments {

@@ -1,4 +1,4 @@
-//! The `sisfilt` binary: parses the command line, runs the command, reports errors (SPEC §7).
+//! The `sisfilt` binary: parses the command line, runs the command, reports errors (docs/theory.md §13).
 
 use std::process::ExitCode;
 
@@ -58,7 +58,7 @@ fn main() -> ExitCode {
     }
 }
 
-/// A command-line error as one line (SPEC §7): clap's message and its tips, without the usage
+/// A command-line error as one line (docs/theory.md §13): clap's message and its tips, without the usage
 /// block that clap prints below them.
 fn usage_error_line(e: &clap::Error) -> String {
     let text = e.to_string();

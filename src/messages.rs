@@ -1,4 +1,4 @@
-//! Messages on standard error (SPEC §7), in one format: `error: …`, `warning: …`, reports such
+//! Messages on standard error (docs/theory.md §13), in one format: `error: …`, `warning: …`, reports such
 //! as `accuracy: …` and, with `--verbose`, `info: …` — each exactly one line. Standard output
 //! carries only data.
 //!

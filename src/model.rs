@@ -1,4 +1,4 @@
-//! The validated model of SPEC §1: dimensions, parameter sets and where they apply.
+//! The validated model of docs/theory.md §1: dimensions, parameter sets and where they apply.
 //!
 //! [`Model::from_config`] checks every shape, value and range of a [`RawConfig`] once; the rest
 //! of the crate relies on those checks and never re-validates. Parameters that vary in time or
@@ -14,7 +14,7 @@ use nalgebra::{DMatrix, DVector, SymmetricEigen};
 use crate::config::{ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability};
 use crate::error::{Error, Result};
 
-/// The sizes of one subsystem (SPEC §1).
+/// The sizes of one subsystem (docs/theory.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub struct Dims {
     /// State dimension `n`.
@@ -91,7 +91,7 @@ impl Params {
     }
 }
 
-/// How `u(t,i)` is produced (SPEC §6 `[input]`). Every element of `u` gets the same value.
+/// How `u(t,i)` is produced (docs/theory.md §13 `[input]`). Every element of `u` gets the same value.
 #[derive(Debug, Clone, PartialEq)]
 pub enum InputSpec {
     Zero,
@@ -105,7 +105,7 @@ pub enum InputSpec {
         period: f64,
         phase: f64,
     },
-    /// An inputs CSV (SPEC §6), path already resolved against the config's folder.
+    /// An inputs CSV (docs/theory.md §13), path already resolved against the config's folder.
     File(PathBuf),
 }
 
@@ -379,7 +379,7 @@ impl Override {
 }
 
 impl Model {
-    /// Checks a parsed config and builds the model (SPEC §1, §6).
+    /// Checks a parsed config and builds the model (docs/theory.md §1, §13).
     pub fn from_config(src: &ConfigSource) -> Result<Self> {
         let c = Checker { file: &src.name };
         let raw: &RawConfig = &src.raw;

@@ -1,4 +1,4 @@
-//! The true system of SPEC §1 with random dropouts: (P1)–(P5) stepped forward from
+//! The true system of docs/theory.md §1 with random dropouts: (P1)–(P5) stepped forward from
 //! `x(1,i) ~ N(m0, P0)`.
 //!
 //! Every draw comes from one `ChaCha8Rng` seeded with the run's seed, in a fixed order, so the

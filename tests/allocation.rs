@@ -122,7 +122,7 @@ fn steps_after_the_first_allocate_nothing() {
     ] {
         for second_moment in [SecondMoment::Local, SecondMoment::Paper] {
             for dropouts in [Dropouts::Unknown, Dropouts::Known] {
-                // The transfer recursion overflows on long chains (SPEC §2).
+                // The transfer recursion overflows on long chains (docs/theory.md §2).
                 let solvers: &[SolverKind] = if model.subsystems > 100 {
                     &[SolverKind::Banded]
                 } else {

@@ -1,4 +1,4 @@
-//! The catalogue of bad inputs (`tests/bad_inputs/`, SPEC §6–§7), and what happens when a run
+//! The catalogue of bad inputs (`tests/bad_inputs/`, docs/theory.md §13), and what happens when a run
 //! is cut short: a reader that closes its pipe early, a run killed in the middle.
 //!
 //! Each folder `NNN_name/` of the catalogue is one case: the files it needs (`config.toml`,
@@ -246,7 +246,7 @@ fn catalogue_is_well_formed() {
     }
 }
 
-/// `estimate | head -c 64`: a reader that closes its end early is not an error (SPEC §7: exit
+/// `estimate | head -c 64`: a reader that closes its end early is not an error (docs/theory.md §13: exit
 /// 0, nothing on standard error but warnings).
 #[test]
 fn estimate_into_a_pipe_closed_early_exits_0_quietly() {

@@ -1,4 +1,4 @@
-//! The block-band operations of SPEC §9 (`sisfilt::band`) against dense nalgebra on random
+//! The block-band operations of docs/theory.md §8 (`sisfilt::band`) against dense nalgebra on random
 //! symmetric positive definite matrices (seeded), for many shapes including `nb = 1, 2`,
 //! `k = 0`, `k = nb − 1` and block sizes 1–5 (5 exercises the unspecialised kernels).
 

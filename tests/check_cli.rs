@@ -1,7 +1,7 @@
-//! `sisfilt check` (SPEC §2, §7): dimensions, the spectral radius of `A_eff` (checked against
+//! `sisfilt check` (docs/theory.md §2, §13): dimensions, the spectral radius of `A_eff` (checked against
 //! an independent dense computation), the instability warning and ill-posed interconnections.
 #![allow(non_snake_case)]
-// Index loops mirror the formulas of SPEC.md, as in the library.
+// Index loops mirror the formulas of docs/theory.md, as in the library.
 #![allow(clippy::needless_range_loop)]
 
 mod common;
@@ -293,7 +293,7 @@ fn ill_posed_config_prints_nothing_on_stdout() {
 
 #[test]
 fn ill_posed_only_after_the_horizon_is_fine() {
-    // SPEC §6: override steps may reach past T; only the steps that exist are affected.
+    // docs/theory.md §13: override steps may reach past T; only the steps that exist are affected.
     let text = scalar_chain(3, 0.5, [0.1, 0.1], [1.0, 1.0], [0.1, 0.0, 0.0, 0.1])
         + "\n[[override]]\nsteps = [21, 30]\nG = [[0.0, 1.0], [1.0, 0.0]]\n";
     let (dir, path, run) = check_text(&text);
@@ -520,7 +520,7 @@ fn check_reads_the_inputs_file() {
     let line = one_error_line(&run.stderr_raw);
     assert!(line.contains("u.csv") && line.contains("line 7"), "{line}");
 
-    // A file with a step beyond T = 20 (SPEC §6: exactly the steps 1..T).
+    // A file with a step beyond T = 20 (docs/theory.md §13: exactly the steps 1..T).
     let mut csv = String::from("t,i,u1\n");
     for t in 1..=21 {
         for i in 1..=2 {

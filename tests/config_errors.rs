@@ -1,4 +1,4 @@
-//! Config validation (SPEC §6): every kind of bad config is rejected with a message that names
+//! Config validation (docs/theory.md §13): every kind of bad config is rejected with a message that names
 //! the file and the TOML key (or, for errors the TOML parser finds, the line).
 
 mod common;
@@ -474,7 +474,7 @@ fn override_subsystems_out_of_bounds() {
         with_override("subsystems = [1, 4]\np = 0.5")
     );
     assert_key_error(&text, "override[2].subsystems", &[]);
-    // Steps may reach past T (SPEC §6).
+    // Steps may reach past T (docs/theory.md §13).
     load(&with_override("steps = [5, 1000]\np = 0.5")).unwrap();
     load(&with_override(
         "subsystems = [4, 4]\nsteps = [11, 20]\np = 0.5",

@@ -1,4 +1,4 @@
-//! `sisfilt estimate` from the command line (SPEC §3, §4, §6, §7): the estimates file and its
+//! `sisfilt estimate` from the command line (docs/theory.md §4, §6, §13): the estimates file and its
 //! JSON form, the shortest workflow through `run.json`, determinism, bad measurement files,
 //! atomic output, known dropouts, `--paper`, `--solver transfer`, `--predicted` and piping.
 //!
@@ -127,7 +127,7 @@ fn warnings(out: &Output) -> Vec<String> {
         .collect()
 }
 
-/// Asserts that standard error is exactly one line starting with `error: ` (SPEC §7) and
+/// Asserts that standard error is exactly one line starting with `error: ` (docs/theory.md §13) and
 /// returns it.
 fn one_error_line(out: &Output) -> String {
     let err = text(&out.stderr);
@@ -213,7 +213,7 @@ impl Csv {
     }
 }
 
-/// The header of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n` (SPEC §6).
+/// The header of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n` (docs/theory.md §13).
 fn estimates_header(n: usize) -> Vec<String> {
     let mut h = vec!["t".to_string(), "i".to_string()];
     h.extend((1..=n).map(|k| format!("x{k}")));
@@ -923,7 +923,7 @@ fn early_errors_leave_stdout_empty() {
     assert!(out.stdout.is_empty(), "{}", describe(&out));
 }
 
-/// SPEC §7: standard output carries only data, so a run that fails on bad input must not
+/// docs/theory.md §13: standard output carries only data, so a run that fails on bad input must not
 /// leave a truncated table there (standard output is held in a 1 MiB buffer and discarded on
 /// error; only a larger output can have reached it before the error).
 #[test]
@@ -1060,7 +1060,7 @@ fn paper_preset_runs_and_differs_from_default() {
     assert_eq!(paper_csv.indices(), all_indices(big_n, steps));
     assert!(paper.stdout != default.stdout, "--paper changed nothing");
 
-    // The preset's choices, and an explicit option winning over it (SPEC §4).
+    // The preset's choices, and an explicit option winning over it (docs/theory.md §6).
     let json = |extra: &[&str]| -> serde_json::Value {
         let mut args = vec!["--format", "json"];
         args.extend_from_slice(extra);
@@ -1077,7 +1077,7 @@ fn paper_preset_runs_and_differs_from_default() {
     assert_eq!(v["options"]["output"], "filtered");
 }
 
-/// A config of a long chain whose transfer recursion blows up (SPEC §2).
+/// A config of a long chain whose transfer recursion blows up (docs/theory.md §2).
 const LONG_CHAIN: &str = "\
 subsystems = 60
 steps = 30
@@ -1165,7 +1165,7 @@ fn transfer_solver_matches_banded_where_it_is_accurate() {
 #[test]
 fn transfer_solver_rejects_singular_g22_on_platoon() {
     // platoon.toml has G = 0: every interior G22 is singular, which the transfer solver
-    // cannot handle (SPEC §2); that is bad input, and the message points to banded.
+    // cannot handle (docs/theory.md §2); that is bad input, and the message points to banded.
     let config = shipped("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);

@@ -225,7 +225,7 @@ fn reported_covariance_matches_monte_carlo_when_uncoupled() {
 }
 
 /// On the shipped platoon the two-step filter treats the estimated speed of the car ahead
-/// as exact (SPEC §3), so its reported gap variance is too small by the variance that error
+/// as exact (docs/theory.md §4), so its reported gap variance is too small by the variance that error
 /// feeds into the gap (measured: empirical / reported = 1.27 for the gap, 1.03 for the speed).
 /// The stated tolerance: no entry underestimated by more than 35 %, none overestimated by
 /// more than 5 %.
@@ -240,7 +240,7 @@ fn reported_covariance_on_coupled_platoon_is_close() {
     }
 }
 
-/// SPEC §3: the paper's `S⁺ = A S Aᵀ` ignores inputs and coupling; on the heat rod (strong
+/// docs/theory.md §4: the paper's `S⁺ = A S Aᵀ` ignores inputs and coupling; on the heat rod (strong
 /// sine input) it makes the reported covariance too small and the RMSE worse than `local`.
 #[test]
 fn paper_second_moment_is_worse_with_inputs() {

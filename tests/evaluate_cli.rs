@@ -7,7 +7,7 @@ fn configs() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
 }
 
-/// Removes every key whose name contains `time` (the only clock readings, SPEC §7).
+/// Removes every key whose name contains `time` (the only clock readings, docs/theory.md §13).
 fn strip_times(v: &mut serde_json::Value) {
     match v {
         serde_json::Value::Object(map) => {
@@ -41,7 +41,7 @@ fn same_results_with_one_and_two_threads() {
     strip_times(&mut one);
     strip_times(&mut two);
     assert_eq!(one, two);
-    // The JSON names every filter of SPEC §7, with figures.
+    // The JSON names every filter of docs/theory.md §13, with figures.
     let names: Vec<&str> = one["filters"]
         .as_array()
         .unwrap()
@@ -147,7 +147,7 @@ fn table_lists_filters_and_notes_skipped_ones() {
 
 /// A chain whose predicted covariance is singular (`Q = 0`, rank-one `A`, no coupling out of
 /// the states): `evaluate --smooth` says, once, that the centralized smoother fell back to
-/// the information form (SPEC §10), and its row still beats the filter.
+/// the information form (docs/theory.md §9), and its row still beats the filter.
 #[test]
 fn smoother_fallback_is_announced() {
     let dir = tempfile::tempdir().unwrap();

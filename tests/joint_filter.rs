@@ -1,6 +1,6 @@
-//! The joint band-k filter (SPEC §9) against independent references: the `A_eff` band against
+//! The joint band-k filter (docs/theory.md §8) against independent references: the `A_eff` band against
 //! the dense lifted `A_eff` built from a dense solve of (P2)–(P4), and the filter at full band
-//! against the centralized filter of SPEC §5 (a dense lifted Nahi/Kalman filter), in both
+//! against the centralized filter of docs/theory.md §7 (a dense lifted Nahi/Kalman filter), in both
 //! dropout modes, on every shipped config and on small chains with overrides and inputs.
 
 mod common;
@@ -187,7 +187,7 @@ fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> 
     }
 }
 
-/// `--band N−1 --band-tol 0 --loading 0` is the centralized filter (SPEC §9), with the `band`
+/// `--band N−1 --band-tol 0 --loading 0` is the centralized filter (docs/theory.md §8), with the `band`
 /// and the `lifted` moment, and in the known-dropout mode the lifted Kalman filter.
 #[test]
 fn full_band_equals_centralized_filter() {
@@ -287,7 +287,7 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
 }
 
 /// `evaluate` replays the joint filter's covariance pass from a schedule: it must give the
-/// filter's own estimates (the pass does not depend on the data, SPEC §9).
+/// filter's own estimates (the pass does not depend on the data, docs/theory.md §8).
 #[test]
 fn scheduled_joint_filter_equals_joint_filter() {
     use sisfilt::filter::joint::{JointSchedule, ScheduledJoint};

@@ -385,7 +385,7 @@ fn heatmap_maps_every_cell_with_a_colour_bar() {
 #[test]
 fn heatmap_of_an_overconfident_filter_uses_decades() {
     // paper.toml has Q = 0: the two-step filter's σ shrinks to nothing while its error does
-    // not, so |x̂ − x| / σ spans orders of magnitude (SPEC §3).
+    // not, so |x̂ − x| / σ spans orders of magnitude (docs/theory.md §4).
     let svg = plot(
         &[
             "heatmap",

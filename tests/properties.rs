@@ -612,7 +612,7 @@ fn uncoupled_chain() -> Chain {
 }
 
 /// The steady state of the filter's covariance recursion in one uncoupled subsystem with unknown
-/// dropouts, computed here from SPEC §3's equations: the raw second moment tends to the
+/// dropouts, computed here from docs/theory.md §4's equations: the raw second moment tends to the
 /// stationary state covariance `X = A X Aᵀ + Q` (zero mean; solved by Kronecker products),
 /// and with `H = p J`, `R_eff = M + p(1−p) J X Jᵀ` the Riccati recursion
 /// `P = T − T Hᵀ (H T Hᵀ + R_eff)⁻¹ H T`, `T⁺ = A P Aᵀ + Q` is iterated to its fixed point.

@@ -1,7 +1,7 @@
-//! `sisfilt simulate` (SPEC §6, §7): the files it writes, their layout, determinism, the
+//! `sisfilt simulate` (docs/theory.md §13): the files it writes, their layout, determinism, the
 //! dropout frequency, the dynamics (P1)–(P4) of the truth, `--mark-missing` and `--out`.
 #![allow(non_snake_case)]
-// Index loops mirror the formulas of SPEC.md, as in the library.
+// Index loops mirror the formulas of docs/theory.md, as in the library.
 #![allow(clippy::needless_range_loop)]
 
 mod common;
@@ -172,7 +172,7 @@ impl Chain {
         p
     }
 
-    /// SPEC §6: `u_k(t, i) = amplitude · sin(2π t / period + phase · i)` for every element k.
+    /// docs/theory.md §13: `u_k(t, i) = amplitude · sin(2π t / period + phase · i)` for every element k.
     fn input(&self, t: usize, i: usize) -> f64 {
         self.amplitude
             * (2.0 * std::f64::consts::PI * t as f64 / self.period + self.phase * i as f64).sin()
@@ -201,7 +201,7 @@ fn check_dynamics(chain: &Chain) {
     let u = inputs.numbers(2, m);
     let at = |t: usize, i: usize| (t - 1) * big_n + (i - 1);
 
-    // The inputs follow the sine of SPEC §6.
+    // The inputs follow the sine of docs/theory.md §13.
     for t in 1..=steps {
         for i in 1..=big_n {
             for k in 0..m {
@@ -853,7 +853,7 @@ fn truth_satisfies_dynamics_one_directional_chains() {
 
 #[test]
 fn truth_satisfies_dynamics_single_subsystem() {
-    // N = 1: nothing enters the chain, v = 0 (SPEC §2), whatever G is.
+    // N = 1: nothing enters the chain, v = 0 (docs/theory.md §2), whatever G is.
     let single = Chain {
         subsystems: 1,
         steps: 25,

@@ -1,4 +1,4 @@
-//! The smoothers of SPEC §10 against independent references: a brute-force batch estimator
+//! The smoothers of docs/theory.md §9 against independent references: a brute-force batch estimator
 //! (Gaussian conditioning of all states on all measurements, built here from the model's
 //! moments and a dense solve of (P2)–(P4)), a plain RTS smoother written here, and each other
 //! where the maths says they agree.
@@ -86,7 +86,7 @@ fn dense_step(model: &Model, t: usize, x: &DVector<f64>, u: &DVector<f64>) -> DV
 
 /// The batch estimate: `E[X | Y]` and the diagonal blocks of `Cov[X | Y]` for every step, by
 /// Gaussian conditioning on the moments of the lifted linear model (unknown dropouts: the
-/// linear model `Y = 𝒫 J X + R U + ν` of SPEC §10; known dropouts: the observed rows).
+/// linear model `Y = 𝒫 J X + R U + ν` of docs/theory.md §9; known dropouts: the observed rows).
 fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) -> Smoothed {
     let (n, q, m, big_n) = (model.dims.n, model.dims.q, model.dims.m, model.subsystems);
     let size = big_n * n;
@@ -328,7 +328,7 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
 }
 
 /// With one subsystem all three smoothers are the plain RTS smoother of the subsystem's
-/// Nahi filter, written here from SPEC §3 and §10.
+/// Nahi filter, written here from docs/theory.md §4 and §9.
 #[test]
 fn one_subsystem_smoothers_equal_plain_rts() {
     let model = one_subsystem();
@@ -536,7 +536,7 @@ fn smoothing_on_the_command_line() {
 
 /// `SMALL` with `Q = 0`, no coupling out of the states (`H = 0`, so `A_eff = blkdiag(A)`) and a
 /// rank-one `A`: `T(t+1) = A_eff P(t|t) A_effᵀ` is singular, so the centralized RTS form
-/// cannot run and SPEC §10's fallback must.
+/// cannot run and docs/theory.md §9's fallback must.
 fn singular_prediction() -> Model {
     model_from(
         &SMALL

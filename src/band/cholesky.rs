@@ -1,4 +1,4 @@
-//! SPEC §9 update steps 4–6: block-banded Cholesky, solves and selected inversion.
+//! docs/theory.md §8 update steps 4–6: block-banded Cholesky, solves and selected inversion.
 
 use super::kernels::{
     block_mul_add_body, chol_lower, nt_acc_fast, simd_available, symmetrise, tn_multi_neg,
@@ -8,7 +8,7 @@ use super::{BandError, SymBand};
 
 /// Block-banded Cholesky factor `Λ = L Lᵀ` (`L` lower block-banded with bandwidth `k`) of a
 /// symmetric positive definite [`SymBand`] of width `k`, with the solves and the block
-/// selected inversion of SPEC §9 update steps 4–6.
+/// selected inversion of docs/theory.md §8 update steps 4–6.
 #[derive(Debug, Clone)]
 pub struct BandCholesky {
     nb: usize,
@@ -80,7 +80,7 @@ impl BandCholesky {
         &self.l[o..o + self.bs * self.bs]
     }
 
-    /// SPEC §9 update step 4: factorises `a = L Lᵀ` (`a.width() == k`) block row by block
+    /// docs/theory.md §8 update step 4: factorises `a = L Lᵀ` (`a.width() == k`) block row by block
     /// row (up-looking), for `i = 0..nb`:
     ///
     /// `L_{i,j} = (Λ_{i,j} − Σ_{p=i−k}^{j−1} L_{i,p} L_{j,p}ᵀ) L_jj⁻ᵀ`, `j = i−k..i−1`, then
@@ -116,7 +116,7 @@ impl BandCholesky {
         }
     }
 
-    /// SPEC §9 update step 5: `x ← Λ⁻¹ x` (`x.len() == nb·bs`) by forward substitution
+    /// docs/theory.md §8 update step 5: `x ← Λ⁻¹ x` (`x.len() == nb·bs`) by forward substitution
     /// `y_i = L_ii⁻¹ (x_i − Σ_{j=i−k}^{i−1} L_{i,j} y_j)` and back substitution
     /// `z_i = L_ii⁻ᵀ (y_i − Σ_{l=i+1}^{i+k} L_{l,i}ᵀ z_l)` (the sum accumulated row by row of
     /// `L`, as it is stored).
@@ -125,7 +125,7 @@ impl BandCholesky {
         specialise!(self.bs, solve_body(self, x))
     }
 
-    /// SPEC §9 update step 6: the band `|i − j| ≤ w = out.width()` (`w ≥ k`) of `P = Λ⁻¹`,
+    /// docs/theory.md §8 update step 6: the band `|i − j| ≤ w = out.width()` (`w ≥ k`) of `P = Λ⁻¹`,
     /// exact everywhere on it (for `|i − j| > k` it is the Gauss–Markov continuation). From
     /// `P L = L⁻ᵀ`, with `E_{l,j} = L_{l,j} L_jj⁻¹`, for `j = nb−1, …, 0`:
     ///

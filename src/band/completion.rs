@@ -1,4 +1,4 @@
-//! SPEC §9 update step 3: the precision of the maximum-entropy completion of a band.
+//! docs/theory.md §8 update step 3: the precision of the maximum-entropy completion of a band.
 
 use super::kernels::chol_lower;
 use super::{BandError, SymBand};
@@ -32,7 +32,7 @@ impl CompletionWorkspace {
     }
 }
 
-/// SPEC §9 update step 3: the precision `Λ` of the maximum-entropy completion of the band
+/// docs/theory.md §8 update step 3: the precision `Λ` of the maximum-entropy completion of the band
 /// `|i − j| ≤ k` of `p` (`p.width() ≥ k`, `k` clamped to `nb − 1`):
 ///
 /// `Λ = Σ_j pad(P_{C_j C_j}⁻¹) − Σ_j pad(P_{S_j S_j}⁻¹)`

@@ -1,5 +1,5 @@
-//! Block-banded matrices and the operations of the joint band-`k` filter (SPEC §9) and its
-//! smoother (SPEC §10): the precision of the maximum-entropy (Gauss–Markov) completion of a
+//! Block-banded matrices and the operations of the joint band-`k` filter (docs/theory.md §8) and its
+//! smoother (docs/theory.md §9): the precision of the maximum-entropy (Gauss–Markov) completion of a
 //! band, the block-banded Cholesky factorisation with its solves, block selected inversion
 //! (Takahashi) to any bandwidth, and the banded sandwich product `band_k(A P Aᵀ)`.
 //!

@@ -1,4 +1,4 @@
-//! Banded products for the information-form smoother (SPEC §10 step 2) and band–vector
+//! Banded products for the information-form smoother (docs/theory.md §9 step 2) and band–vector
 //! products.
 
 use super::kernels::{block_strip_acc, simd_available};

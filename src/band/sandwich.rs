@@ -1,4 +1,4 @@
-//! SPEC §9 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
+//! docs/theory.md §8 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
 use super::kernels::{nt_acc_fast, simd_available};
 use super::{GenBand, SymBand};
@@ -51,7 +51,7 @@ impl SandwichWorkspace {
     }
 }
 
-/// SPEC §9 predict step 4: `out = band_k(A P Aᵀ)`, `k = out.width()`, for `A` of half-width
+/// docs/theory.md §8 predict step 4: `out = band_k(A P Aᵀ)`, `k = out.width()`, for `A` of half-width
 /// `b` and symmetric `P` of width `≥ min(k + 2b, nb − 1)` (only that band of `P` enters).
 ///
 /// With `P = U + Uᵀ`, `U` the upper block triangle of `P` with its diagonal blocks halved,

@@ -1,4 +1,4 @@
-//! The centralized reference filter of SPEC §5: the Nahi filter on the lifted system
+//! The centralized reference filter of docs/theory.md §7: the Nahi filter on the lifted system
 //! `X⁺ = A_eff X + U_eff U + Ω`, `Y = Γ blkdiag(J) X + blkdiag(R) U + D_n`, with
 //! `H = 𝒫 blkdiag(J)`, `𝒫 = blkdiag(p_i I_q)`, and
 //! `R_eff = M_big + blkdiag(p_i(1−p_i) J S_ii Jᵀ)` from the exact lifted moments. It is the

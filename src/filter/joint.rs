@@ -1,10 +1,10 @@
-//! The joint band-k filter of SPEC §9: the full lifted mean and the lifted covariance on the
+//! The joint band-k filter of docs/theory.md §8: the full lifted mean and the lifted covariance on the
 //! block band `|i − j| ≤ k`, standing for the rest by its maximum-entropy (Gauss–Markov)
 //! completion. It accounts for the error in the interconnection signals that the two-step
 //! filter treats as exact, so its covariance stays honest (also with `Q = 0`), and every step
-//! is linear in `N`. With `k = N − 1` it is the centralized filter of SPEC §5.
+//! is linear in `N`. With `k = N − 1` it is the centralized filter of docs/theory.md §7.
 //!
-//! One time step, in information form on the band (SPEC §9 update steps 1–7, predict 1–5):
+//! One time step, in information form on the band (docs/theory.md §8 update steps 1–7, predict 1–5):
 //!
 //! ```text
 //! Λ⁻   = Σ_cliques pad(P⁻_C⁻¹) − Σ_separators pad(P⁻_S⁻¹)      completion precision
@@ -33,7 +33,7 @@ use crate::model::{Model, Params};
 pub const DEFAULT_BAND: usize = 2;
 /// Default `--band-tol`: relative size below which blocks of `A_eff` are dropped.
 pub const DEFAULT_BAND_TOL: f64 = 1e-9;
-/// Default `--loading` when every `Q` is zero (else 0): SPEC §9 "Numerics".
+/// Default `--loading` when every `Q` is zero (else 0): docs/theory.md §8 "Loading".
 pub const DEFAULT_LOADING_Q_ZERO: f64 = 1e-9;
 
 /// Options of the joint filter.
@@ -41,7 +41,7 @@ pub const DEFAULT_LOADING_Q_ZERO: f64 = 1e-9;
 pub struct JointOptions {
     /// `K`: the covariance is kept on the blocks `|i − j| ≤ min(K, N − 1)`.
     pub band: usize,
-    /// Relative tolerance of the `A_eff` band (SPEC §9 predict step 2).
+    /// Relative tolerance of the `A_eff` band (docs/theory.md §8 predict step 2).
     pub band_tol: f64,
     /// Diagonal loading `ε`; `None` means 1e−9 when every `Q` is zero, else 0.
     pub loading: Option<f64>,
@@ -64,7 +64,7 @@ impl Default for JointOptions {
 
 impl JointOptions {
     /// The whole lifted covariance (`K = N − 1`) and the exact `A_eff` (tolerance 0): the
-    /// centralized filter of SPEC §5, in the information form (default loading).
+    /// centralized filter of docs/theory.md §7, in the information form (default loading).
     pub fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> Self {
         Self {
             band: model.subsystems - 1,
@@ -85,7 +85,7 @@ impl JointOptions {
     }
 }
 
-/// The leading flop count of one subsystem-step of the joint filter (SPEC §9 "Cost"): predict
+/// The leading flop count of one subsystem-step of the joint filter (docs/theory.md §8 "Cost"): predict
 /// `2n³[(2b+1)(2k+2b+1) + (k+1)(2b+1)]`, selected inversion `2wkn³`, cliques `(k+1)³n³`,
 /// Cholesky `k²n³/2`, with `w = min(k + 2b, N − 1)`; twice that with the `band` moment.
 pub fn flops_per_subsystem_step(
@@ -104,7 +104,7 @@ pub fn flops_per_subsystem_step(
 }
 
 /// The band of `A_eff` for the parameters in force, rebuilt only when `A`, `B`, `D` or `G` of
-/// some subsystem change (SPEC §9 predict step 2).
+/// some subsystem change (docs/theory.md §8 predict step 2).
 pub struct AEffBand {
     band: GenBand,
     built_from: Vec<f64>,
@@ -162,7 +162,7 @@ impl AEffBand {
     }
 }
 
-/// What the filter uses for the raw second moments `S_ii` (SPEC §9 update step 1).
+/// What the filter uses for the raw second moments `S_ii` (docs/theory.md §8 update step 1).
 enum Moments {
     /// Known-dropout mode: not needed.
     None,
@@ -175,12 +175,12 @@ enum Moments {
         /// for [`JointSchedule`]).
         chol: Box<BandCholesky>,
     },
-    /// The exact dense lifted moments (SPEC §5), for tests on small chains.
+    /// The exact dense lifted moments (docs/theory.md §3), for tests on small chains.
     Lifted {
         sys: Box<LiftedSystem>,
         moments: Box<LiftedMoments>,
     },
-    /// The two-step filter's per-subsystem moments with the filter's own `v̂` (SPEC §3).
+    /// The two-step filter's per-subsystem moments with the filter's own `v̂` (docs/theory.md §4).
     Local {
         mean: Vec<f64>,
         cov: Vec<f64>,
@@ -286,7 +286,7 @@ impl InfoWorkspace {
     }
 }
 
-/// `P_ii += ε (tr P_ii / n) I` on every diagonal block (SPEC §9 "Numerics").
+/// `P_ii += ε (tr P_ii / n) I` on every diagonal block (docs/theory.md §8 "Loading").
 pub(crate) fn load_diagonal(p: &mut SymBand, eps: f64) {
     if eps == 0.0 {
         return;
@@ -349,7 +349,7 @@ pub struct JointFilter<'m> {
     block_pred: Vec<f64>,
     /// When recording a [`JointSchedule`]: every subsystem's `R_i⁻¹ H_i` of the last step.
     recorded_gains: Option<Vec<f64>>,
-    /// For the smoother (SPEC §10): `Λ⁻(t)` and `Λ⁺(t)` of the last step.
+    /// For the smoother (docs/theory.md §9): `Λ⁻(t)` and `Λ⁺(t)` of the last step.
     pub(crate) kept_precisions: Option<(SymBand, SymBand)>,
 }
 
@@ -598,13 +598,13 @@ fn add_process_noise(model: &Model, t: usize, p: &mut SymBand) {
 }
 
 /// A band error at time `t` of the joint filter as its error, naming `t`, the block and the
-/// remedies of SPEC §9.
+/// remedies of docs/theory.md §8.
 fn band_error_at(t: usize, loading: f64, k: usize, what: &str, e: BandError) -> Error {
     band_error("joint filter", t, loading, k, &format!("the {what} "), e)
 }
 
 /// A band error at time `t` of `who` (the joint filter or smoother): names `t`, the block
-/// (`what` prefixes its description) and the remedies of SPEC §9.
+/// (`what` prefixes its description) and the remedies of docs/theory.md §8.
 pub(crate) fn band_error(
     who: &str,
     t: usize,
@@ -636,7 +636,7 @@ impl ChainFilter for JointFilter<'_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = self.model;
         let (n, big_n, t) = (model.dims.n, model.subsystems, self.t);
-        // Update (SPEC §9 update steps 1–7).
+        // Update (docs/theory.md §8 update steps 1–7).
         load_diagonal(&mut self.p_pred, self.loading);
         if let Moments::Band { cov, .. } = &mut self.moments {
             load_diagonal(cov, self.loading);
@@ -671,7 +671,7 @@ impl ChainFilter for JointFilter<'_> {
         self.chol.selected_inverse(&mut self.p_filt);
         diagonal_blocks(&self.p_filt, &mut self.block_filt);
 
-        // Predict (SPEC §9 predict steps 1–5).
+        // Predict (docs/theory.md §8 predict steps 1–5).
         propagate_mean(
             model,
             t,
@@ -728,7 +728,7 @@ struct ScheduledStep {
 
 /// The covariance pass of the unknown-dropout joint filter with the `band` or `lifted`
 /// moment, stored per step. It depends on the model and the inputs only, not on the
-/// measurements (SPEC §9), so `evaluate` computes it once and replays it for every run with
+/// measurements (docs/theory.md §8), so `evaluate` computes it once and replays it for every run with
 /// [`ScheduledJoint`], which costs a banded solve and a chain solve per step.
 pub struct JointSchedule<'m> {
     model: &'m Model,

@@ -2,7 +2,7 @@
 //! implementations: [`DynamicKernel`] (any size, nalgebra `DMatrix` with preallocated
 //! workspaces) and [`FixedKernel`] (compile-time sizes `n ≤ 4`, `q ≤ 2`, stack-allocated
 //! `SMatrix`), which removes the per-call overhead of dynamic sizes for the common cases.
-//! Both compute exactly the formulas of [`crate::filter::nahi`] (SPEC §3).
+//! Both compute exactly the formulas of [`crate::filter::nahi`] (docs/theory.md §4).
 
 use nalgebra::{DMatrix, SMatrix, SVector};
 

@@ -1,4 +1,4 @@
-//! Step 2 and the filters built on it: the local Nahi update of SPEC §3
+//! Step 2 and the filters built on it: the local Nahi update of docs/theory.md §4
 //! ([`nahi`]) and the two-step distributed filter that alternates it with the chain solve
 //! ([`two_step`](mod@two_step)).
 
@@ -28,11 +28,11 @@ pub trait ChainFilter {
     fn filtered(&self) -> (&[f64], &[f64]);
     /// After step `t`: `x̂(t+1|t)` and the diagonal blocks of `T(t+1)`.
     fn predicted(&self) -> (&[f64], &[f64]);
-    /// The largest estimated relative error of step 1 so far (`transfer` only; SPEC §2).
+    /// The largest estimated relative error of step 1 so far (`transfer` only; docs/theory.md §2).
     fn solver_error_estimate(&self) -> f64 {
         0.0
     }
-    /// For filters that keep a covariance band (the joint filter, SPEC §9): the band of the
+    /// For filters that keep a covariance band (the joint filter, docs/theory.md §8): the band of the
     /// last output's covariance (`P(t|t)`, or `T(t+1)` with `predicted`) and its width `k`.
     fn covariance_band(&self, _predicted: bool) -> Option<(&SymBand, usize)> {
         None
@@ -49,7 +49,7 @@ pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
 }
 
 /// What the filter uses for the raw second moment `S = E[x xᵀ]` in the Nahi innovation
-/// covariance (SPEC §3).
+/// covariance (docs/theory.md §4).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SecondMoment {
@@ -60,11 +60,11 @@ pub enum SecondMoment {
     /// The exact diagonal blocks of E[X Xᵀ] of the lifted system: O((N·n)²) memory, for
     /// reference on small chains.
     Lifted,
-    /// The joint filter's own moment band (SPEC §9; its default, joint filter only).
+    /// The joint filter's own moment band (docs/theory.md §8; its default, joint filter only).
     Band,
 }
 
-/// Which estimate of `x(t, ·)` feeds step 1 (SPEC §3).
+/// Which estimate of `x(t, ·)` feeds step 1 (docs/theory.md §4).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum InterconnectFrom {
@@ -74,7 +74,7 @@ pub enum InterconnectFrom {
     Predicted,
 }
 
-/// Whether the filter knows which measurements were lost (SPEC §1).
+/// Whether the filter knows which measurements were lost (docs/theory.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dropouts {
@@ -105,7 +105,7 @@ impl Default for TwoStepOptions {
 }
 
 impl TwoStepOptions {
-    /// The paper's algorithm (SPEC §4): `transfer`, `predicted`, `S = paper`.
+    /// The paper's algorithm (docs/theory.md §6): `transfer`, `predicted`, `S = paper`.
     pub fn paper() -> Self {
         Self {
             solver: SolverKind::Transfer,

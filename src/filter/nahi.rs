@@ -1,4 +1,4 @@
-//! The local Nahi filter of one subsystem (SPEC §3, (P21); Nahi 1969), in the Joseph form.
+//! The local Nahi filter of one subsystem (docs/theory.md §4, (P21); Nahi 1969), in the Joseph form.
 //!
 //! With `p = p(t,i)`, the prediction `x̂ = x̂(t|t−1)` with error covariance `T`, the raw
 //! second moment `S = E[x xᵀ]`, `H = p J` and `R_eff = M + p(1−p) J S Jᵀ`:
@@ -12,7 +12,7 @@
 //! x̂(t+1|t) = A x̂(t|t) + B v̂ + C u,   T(t+1) = A P(t|t) Aᵀ + Q
 //! ```
 //!
-//! The prediction equals SPEC §3's `x̂⁺ = A x̂ + K ỹ + ĉ₁` and its Joseph form
+//! The prediction equals docs/theory.md §4's `x̂⁺ = A x̂ + K ỹ + ĉ₁` and its Joseph form
 //! `T⁺ = (A − pKJ) T (A − pKJ)ᵀ + K R_eff Kᵀ + Q`, since `A − pKJ = A (I − L H)`.
 //! `Σ⁻¹` is never formed: `Σ⁻¹ H T` comes from a Cholesky solve.
 //!
@@ -243,7 +243,7 @@ fn symmetrize(m: &mut DMatrixViewMut<f64>) {
 mod tests {
     use super::*;
 
-    /// Scalar system: hand-derived closed forms of SPEC §3.
+    /// Scalar system: hand-derived closed forms of docs/theory.md §4.
     #[test]
     fn scalar_gain_and_covariance_match_closed_form() {
         let (a, j, m, p, t, s, x, y) = (0.9, 2.0, 0.5, 0.7, 1.3, 2.9, 0.4, 1.1);
@@ -269,7 +269,7 @@ mod tests {
         let p_exp = t - p * p * t * t * j * j / sigma;
         assert!((xf[0] - x_exp).abs() < 1e-14, "{} vs {x_exp}", xf[0]);
         assert!((pf[0] - p_exp).abs() < 1e-14, "{} vs {p_exp}", pf[0]);
-        // SPEC §3's one-step form: T⁺ = (A − pKJ) T Aᵀ with K = p A T J / Σ.
+        // docs/theory.md §4's one-step form: T⁺ = (A − pKJ) T Aᵀ with K = p A T J / Σ.
         let k = p * a * t * j / sigma;
         let t_next_exp = (a - p * k * j) * t * a;
         let mut t_next = [0.0];

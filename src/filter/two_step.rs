@@ -1,4 +1,4 @@
-//! The two-step distributed filter (SPEC §2–§4): at each time step every subsystem runs its
+//! The two-step distributed filter (docs/theory.md §2, §4): at each time step every subsystem runs its
 //! local Nahi update, step 1 solves the interconnection signals `v̂` along the chain from the
 //! estimates, and every subsystem predicts with `v̂` taken as a known input.
 //!
@@ -240,7 +240,7 @@ fn update_range<K: LocalKernel>(
                 return Some(i);
             }
         }
-        // Step 1's right-hand side, from the estimate that feeds it (SPEC §3).
+        // Step 1's right-hand side, from the estimate that feeds it (docs/theory.md §4).
         let zi = &mut z[k * s..(k + 1) * s];
         zi.fill(0.0);
         let source: &[f64] = if inp.from_predicted {
@@ -376,7 +376,7 @@ impl<'m> TwoStepFilter<'m, DynamicKernel> {
 }
 
 impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
-    /// Initial values of SPEC §3: `x̂(1) = m0`, `T(1) = P0`, `S(1) = P0 + m0 m0ᵀ`.
+    /// Initial values of docs/theory.md §4: `x̂(1) = m0`, `T(1) = P0`, `S(1) = P0 + m0 m0ᵀ`.
     pub fn with_kernel(model: &'m Model, opts: TwoStepOptions) -> Result<Self> {
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);

@@ -1,4 +1,4 @@
-//! The default step-1 solver, `banded` (SPEC §2): the link equations ordered
+//! The default step-1 solver, `banded` (docs/theory.md §2): the link equations ordered
 //! `[a(1); b(1); a(2); …]` form a banded system with `kl = s − 1 + n⁺` sub- and
 //! `ku = s − 1 + n⁻` super-diagonals (`s = n⁺ + n⁻`), factorised by [`BandLu`] in `O(N s³)`
 //! once per change of `G` and solved in `O(N s²)` per time step. It needs no block of `G`
@@ -13,7 +13,7 @@ use crate::band_lu::{BandLu, SplitBandLu};
 use crate::error::{Error, Result};
 use crate::model::Model;
 
-/// Largest 1-norm condition estimate of a well-posed interconnection system (SPEC §2).
+/// Largest 1-norm condition estimate of a well-posed interconnection system (docs/theory.md §2).
 pub const MAX_CONDITION: f64 = 1e15;
 
 /// Chains with at least this many links solve step 1 in two halves in parallel.
@@ -228,7 +228,7 @@ mod tests {
     use nalgebra::{DMatrix, DVector};
 
     /// Dense reference: unknowns are all `w(i)` and `v(i)`; equations (P2), (P3), (P4) as
-    /// written in SPEC §1, without the link elimination used by the solver.
+    /// written in docs/theory.md §1, without the link elimination used by the solver.
     fn dense_solve(model: &Model, t: usize, z: &[f64]) -> Vec<f64> {
         let d = model.dims;
         let (s, p, n) = (d.s(), d.plus, model.subsystems);

@@ -1,8 +1,8 @@
-//! Step 1 of the two-step filter (SPEC §2): the interconnection signals `v(t, ·)` along the
+//! Step 1 of the two-step filter (docs/theory.md §2): the interconnection signals `v(t, ·)` along the
 //! chain from `z(t,i) = D x(t,i) + H u(t,i)`.
 //!
 //! With the link unknowns `a(i) = w⁺(i) = v⁺(i+1)` and `b(i) = v⁻(i) = w⁻(i+1)`, `i = 1..N−1`,
-//! (P2)–(P4) (with the corrected boundary conditions of SPEC §8) read
+//! (P2)–(P4) (with the corrected boundary conditions of docs/theory.md §6) read
 //!
 //! ```text
 //! a(i) − G11(i) a(i−1) − G12(i) b(i)       = z⁺(i),     a(0) = 0
@@ -11,7 +11,7 @@
 //!
 //! and then `v(i) = [a(i−1); b(i)]` with `a(0) = 0`, `b(N) = 0`. Two solvers:
 //! [`ChainSolver`] (`banded`, default) and [`TransferSolver`] (`transfer`, the paper's
-//! recursion (P6)–(P19) as corrected in SPEC §8).
+//! recursion (P6)–(P19) as corrected in docs/theory.md §6).
 
 mod banded;
 mod transfer;
@@ -67,7 +67,7 @@ impl Interconnect {
         }
     }
 
-    /// For `transfer`, the estimated relative error of its solutions (SPEC §2); 0 for `banded`.
+    /// For `transfer`, the estimated relative error of its solutions (docs/theory.md §2); 0 for `banded`.
     pub fn error_estimate(&self) -> f64 {
         match self {
             Interconnect::Banded(_) => 0.0,

@@ -1,5 +1,5 @@
 //! The paper's step-1 solver, `transfer`: the transfer-matrix recursion (P6)–(P19), as
-//! corrected in SPEC §8. Kept to reproduce the paper; it needs every interior `G22(k)`
+//! corrected in docs/theory.md §6. Kept to reproduce the paper; it needs every interior `G22(k)`
 //! invertible and its error grows like `ε ‖φ(N−1)…φ(2)‖`, exponentially in `N`.
 //!
 //! With `X(k) = [w⁺(k); v⁻(k)] = [a(k); b(k)]`, eliminating `b(k)` from the link equations
@@ -15,7 +15,7 @@
 //! and closed by `v⁻(N) = 0`: with `MT = φ(N−1)…φ(2)`, `MC = Σ_{i=2}^{N−1} φ(N−1)…φ(i+1) β(i)`,
 //! (P16) `v⁻(1) = K⁻¹ { [−G21(N), I] (MC + MT [z⁺(1); 0]) − z⁻(N) }`,
 //! `K = [G21(N), −I] MT [G12(1); I]`. For `N = 2` the products are empty (`MT = I`,
-//! `MC = 0`), which gives SPEC §8's `N = 2` formula.
+//! `MC = 0`), which gives docs/theory.md §6's `N = 2` formula.
 
 use nalgebra::{DMatrix, DVector, LU};
 
@@ -177,14 +177,14 @@ impl TransferSolver {
         // With minus = 0 there is no v⁻ to close the recursion with: K is 0 × 0, and
         // nalgebra's LU solve cannot take an empty system.
         self.k_lu = (m > 0).then(|| k_mat.lu());
-        // Rounding errors of size ε are amplified by the transfer products and by K⁻¹ (SPEC §2).
+        // Rounding errors of size ε are amplified by the transfer products and by K⁻¹ (docs/theory.md §2).
         // Against the banded solve on random chains (G entries ≤ 0.3, N = 3..50) this tracked
         // the actual relative error within a factor 1–20 (e.g. 3e−2 for 1.2e−2 at N = 20).
         self.error_estimate = f64::EPSILON * growth * k_inv_norm.max(1.0);
         Ok(())
     }
 
-    /// Estimated relative error of the solutions (SPEC §2: `ε ‖Π φ‖`, times the closing
+    /// Estimated relative error of the solutions (docs/theory.md §2: `ε ‖Π φ‖`, times the closing
     /// solve's amplification).
     pub fn error_estimate(&self) -> f64 {
         self.error_estimate

@@ -1,4 +1,4 @@
-//! Streaming reader for the per-`(t, i)` CSV files of SPEC §6 (measurements, inputs, truth).
+//! Streaming reader for the per-`(t, i)` CSV files of docs/theory.md §13 (measurements, inputs, truth).
 //! It hands out one time step at a time, so memory does not grow with `T`, and checks the
 //! header, the row order (`t` then `i`), completeness and every number, naming the file and line.
 
@@ -61,7 +61,7 @@ pub struct StepReader<R: Read> {
     allow_empty: bool,
     empty_hint: &'static str,
     subsystems: usize,
-    /// The first indicator column (`gamma`, SPEC §6: 0 or 1); the header's length if none.
+    /// The first indicator column (`gamma`, docs/theory.md §13: 0 or 1); the header's length if none.
     first_indicator: usize,
     reader: csv::Reader<R>,
     record: csv::ByteRecord,
@@ -83,7 +83,7 @@ impl<R: Read> StepReader<R> {
     }
 
     /// Like [`StepReader::new`], for files whose value columns are not `prefix1..prefixW`
-    /// (the estimates file, SPEC §6): `header` is the exact header, `t` and `i` first.
+    /// (the estimates file, docs/theory.md §13): `header` is the exact header, `t` and `i` first.
     pub fn with_header(
         name: &str,
         source: R,

@@ -1,4 +1,4 @@
-//! CSV writer for the per-`(t, i)` files of SPEC §6. Numbers are written in the shortest form
+//! CSV writer for the per-`(t, i)` files of docs/theory.md §13. Numbers are written in the shortest form
 //! that reads back to the same bits (`ryu`), integers with `itoa`; one reused line buffer, so
 //! writing allocates nothing per row.
 

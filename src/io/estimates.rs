@@ -1,6 +1,6 @@
-//! Writers of the estimates file (SPEC §6): CSV `t,i,x1..xn,P1_1,P1_2..Pn_n` (the upper
+//! Writers of the estimates file (docs/theory.md §13): CSV `t,i,x1..xn,P1_1,P1_2..Pn_n` (the upper
 //! triangle of the covariance, row by row), or JSON with the same numbers as rows of a table
-//! plus the run's metadata. For the joint filter (SPEC §9) the JSON rows also carry the
+//! plus the run's metadata. For the joint filter (docs/theory.md §8) the JSON rows also carry the
 //! cross-covariance blocks `P_{i,i+d}`, `d = 1..k`, in columns `C{d}_{r}_{c}` (element `(r, c)`
 //! of `P_{i,i+d}`, the covariance of `x(i)` and `x(i+d)`; `null` where `i + d > N`).
 

@@ -1,4 +1,4 @@
-//! Files: the streaming CSV reader and writer of SPEC §6, atomic output files, the check that
+//! Files: the streaming CSV reader and writer of docs/theory.md §13, atomic output files, the check that
 //! no output is an input, and the `run.json` record that `simulate` leaves beside its data.
 
 pub mod csv_in;

@@ -1,4 +1,4 @@
-//! Reading the files the figures are drawn from (SPEC §6): truth, estimates (CSV or the JSON of
+//! Reading the files the figures are drawn from (docs/theory.md §13): truth, estimates (CSV or the JSON of
 //! `estimate --format json`) and measurements. The chain length `N` and the widths are learnt
 //! from the files themselves; the rows are then read and checked by the streaming
 //! [`StepReader`], one time step at a time, so that only what a figure needs is kept.
@@ -149,7 +149,7 @@ enum EstimatesSource {
     },
 }
 
-/// An estimates file (SPEC §6): `t,i,x1..xn,P1_1,P1_2..Pn_n`, as CSV or as the JSON of
+/// An estimates file (docs/theory.md §13): `t,i,x1..xn,P1_1,P1_2..Pn_n`, as CSV or as the JSON of
 /// `estimate --format json` (chosen by the extension `.json`).
 pub struct EstimatesFile {
     source: EstimatesSource,
@@ -172,7 +172,7 @@ impl EstimatesFile {
             file: name.clone(),
             line: 1,
             msg: format!(
-                "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (SPEC §6), found `{}`",
+                "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (docs/theory.md §13), found `{}`",
                 found.join(",").escape_debug()
             ),
         };

@@ -1,4 +1,4 @@
-//! SVG figures (SPEC §7 `plot`) drawn from the files the other commands write: one state of
+//! SVG figures (docs/theory.md §13 `plot`) drawn from the files the other commands write: one state of
 //! one subsystem against time ([`series`]), the time × subsystem map of the estimation error
 //! ([`heatmap`]), and the Monte Carlo figures of `evaluate` ([`evaluate`]).
 //!

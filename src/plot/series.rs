@@ -3,7 +3,7 @@
 //! The top panel shows the truth, the estimate `x̂_k(t)` with its band `x̂_k ± 2σ_k`
 //! (`σ_k² = P_kk`, the reported variance), an optional second estimate (`--smoothed`) with its
 //! own band, and the time steps whose measurement was lost (`gamma = 0` in the truth file) as
-//! ticks along the time axis. The measurements `y = γ J x + R u + d` (SPEC §1, (P5)) are drawn
+//! ticks along the time axis. The measurements `y = γ J x + R u + d` (docs/theory.md §1, (P5)) are drawn
 //! over the state when some row of `J` picks `x_k` alone and `R` adds nothing to it (then
 //! `y_r = x_k + d_r` when the measurement arrived, pure noise when it was lost); otherwise they
 //! get a panel of their own. The middle panel shows the error `x̂_k − x_k` against `±2σ_k`:

@@ -1,4 +1,4 @@
-//! The RTS smoother on the centralized filter of SPEC §5 (SPEC §10 `centralized`; in the
+//! The RTS smoother on the centralized filter of docs/theory.md §7 (docs/theory.md §9 `centralized`; in the
 //! known-dropout mode on its Kalman filter). For `t = T−1, …, 1`, with `T(t+1) = P(t+1|t)`:
 //!
 //! ```text
@@ -19,7 +19,7 @@ use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, Seco
 use crate::model::Model;
 use crate::smoother::{BackwardGain, GainView, JointSmoother, MeanPass, Smoothed, Smoother};
 
-/// Largest condition estimate of `T(t+1)` for which the RTS form is used (SPEC §10).
+/// Largest condition estimate of `T(t+1)` for which the RTS form is used (docs/theory.md §9).
 pub const MAX_CONDITION: f64 = 1e12;
 
 /// The stored forward pass of the centralized filter.
@@ -143,7 +143,7 @@ impl Smoother for CentralizedSmoother<'_> {
 }
 
 impl CentralizedSmoother<'_> {
-    /// Smooths the stored data by the information form at full band (SPEC §10 fallback).
+    /// Smooths the stored data by the information form at full band (docs/theory.md §9 fallback).
     fn information_form_fallback(
         &self,
         t: usize,
@@ -166,7 +166,7 @@ impl CentralizedSmoother<'_> {
         out.bands = None;
         out.forward = Some(opts);
         out.notes.push(format!(
-            "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (SPEC §10)",
+            "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (docs/theory.md §9)",
             t + 1,
             opts.loading_for(model)
         ));

@@ -1,4 +1,4 @@
-//! The per-subsystem RTS smoother on the two-step filter (SPEC §10 `distributed`): `v̂` is
+//! The per-subsystem RTS smoother on the two-step filter (docs/theory.md §9 `distributed`): `v̂` is
 //! taken as a known input, as the filter does, so each subsystem is smoothed on its own in
 //! `O(n³)` per step, without communication. For each `i` and `t = T−1, …, 1`:
 //!

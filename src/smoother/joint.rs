@@ -1,6 +1,6 @@
-//! The information-form smoother on the joint band-k filter (SPEC §10 `joint`), linear in `N`.
+//! The information-form smoother on the joint band-k filter (docs/theory.md §9 `joint`), linear in `N`.
 //!
-//! The forward pass is the joint filter of SPEC §9, storing per `t`: `x̂(t|t−1)`, `x̂(t|t)`,
+//! The forward pass is the joint filter of docs/theory.md §8, storing per `t`: `x̂(t|t−1)`, `x̂(t|t)`,
 //! the prior precision band `Λ⁻(t)` (after loading), `Λ⁺(t) = Λ⁻(t) + blkdiag(Φ_i)` and the
 //! band of `A_eff(t)` (once per override window). With `Q_i = G_i G_iᵀ` and `Λˢ(T) = Λ⁺(T)`,
 //! for `t = T−1, …, 1`:
@@ -66,7 +66,7 @@ impl<'m> JointSmoother<'m> {
     /// exact smoother of the perturbed model. Loading `Λˢ` instead, as the band-k smoother
     /// must, is not consistent with `G = 0` when `Q = 0` and `A_eff` is singular: the
     /// errors grow backwards by about `1/ε` per step. Used by the centralized smoother's
-    /// fallback (SPEC §10).
+    /// fallback (docs/theory.md §9).
     pub fn loading_as_noise(mut self) -> Self {
         self.loading_as_noise = true;
         self
@@ -236,7 +236,7 @@ impl Backward {
         self.b = Some(b);
     }
 
-    /// One backward step at time `t` (SPEC §10 `joint` steps 1–5): `x̂(t|T)` into `x_out` and
+    /// One backward step at time `t` (docs/theory.md §9 `joint` steps 1–5): `x̂(t|T)` into `x_out` and
     /// the band `k` of `P(t|T)` into `band_out`.
     #[allow(clippy::too_many_arguments)]
     fn step(

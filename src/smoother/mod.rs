@@ -1,8 +1,8 @@
-//! Fixed-interval smoothing (SPEC §10): `x̂(t|T)` with `P(t|T)` from every measurement of the
+//! Fixed-interval smoothing (docs/theory.md §9): `x̂(t|T)` with `P(t|T)` from every measurement of the
 //! run. Each filter has its smoother, run backward over what its forward pass stored:
 //! [`distributed`] (per-subsystem RTS on the two-step filter), [`centralized`] (RTS on the
-//! lifted filter of SPEC §5, with the information form as fallback) and [`joint`] (the
-//! information form on the joint band-k filter of SPEC §9, linear in `N`).
+//! lifted filter of docs/theory.md §7, with the information form as fallback) and [`joint`] (the
+//! information form on the joint band-k filter of docs/theory.md §8, linear in `N`).
 //!
 //! The Nahi model is exact here: with `ν = (Γ − 𝒫) J X + d` the measurements read
 //! `Y = 𝒫 J X + R U + ν` with `ν` white, zero-mean and uncorrelated with the states, so the
@@ -70,7 +70,7 @@ pub trait Smoother {
 /// ```
 ///
 /// `L_t = C_t` for the RTS smoothers (block-diagonal for `distributed`); for `joint`,
-/// `L_t e` is the `δ`-part of `𝒥⁻¹ [A_effᵀ; Gᵀ] Λˢ(t+1) e` (SPEC §10 `joint` step 4). In the
+/// `L_t e` is the `δ`-part of `𝒥⁻¹ [A_effᵀ; Gᵀ] Λˢ(t+1) e` (docs/theory.md §9 `joint` step 4). In the
 /// unknown-dropout mode `L_t` and `P(t|T)` do not depend on the measurements, so the
 /// covariance pass can run once for many data sets ([`SmootherSchedule`]).
 #[derive(Debug, Clone)]
@@ -197,7 +197,7 @@ impl MeanPass {
                 smoothed_precision,
                 a_eff,
             } => {
-                // 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e (SPEC §10 `joint` step 4).
+                // 𝒥 [δ; ξ̂] = [A_effᵀ v; Gᵀ v], v = Λˢ(t+1) e (docs/theory.md §9 `joint` step 4).
                 let bs = 2 * n;
                 smoothed_precision.mul_vec(&self.e, &mut self.v);
                 a_eff.mul_vec_transposed(&self.v, &mut self.atv);
@@ -220,8 +220,8 @@ impl MeanPass {
 }
 
 /// The covariance pass of a smoother in the unknown-dropout mode, computed once and replayed
-/// on the means of any number of runs (SPEC §10: "one pass for all runs in `evaluate`"): the
-/// gains `L_t` and the diagonal blocks of `P(t|T)`.
+/// on the means of any number of runs (it does not depend on the data, docs/theory.md §9):
+/// the gains `L_t` and the diagonal blocks of `P(t|T)`.
 pub struct SmootherSchedule {
     gains: Vec<BackwardGain>,
     /// Per step, the diagonal blocks of `P(t|T)`.
@@ -294,7 +294,7 @@ pub enum SmootherKind {
     Joint(usize),
 }
 
-/// Bytes the stored forward pass and the smoothed output take for `steps` steps (SPEC §10
+/// Bytes the stored forward pass and the smoothed output take for `steps` steps (docs/theory.md §9
 /// "Memory"): `O(T·N·n²)` for `distributed`, `O(T·N·(k+1)·n²)` for `joint`, `O(T·(Nn)²)` for
 /// `centralized`.
 pub fn memory_bytes(model: &Model, kind: SmootherKind, steps: usize) -> u64 {

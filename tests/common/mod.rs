@@ -1,6 +1,6 @@
 //! Helpers shared by the integration tests: running the binary, writing configs, reading the
-//! CSV files of SPEC §6, and an independent dense solve of the interconnection equations
-//! (P2)–(P4) with the lifted `A_eff` of SPEC §5 built from it.
+//! CSV files of docs/theory.md §13, and an independent dense solve of the interconnection equations
+//! (P2)–(P4) with the lifted `A_eff` of docs/theory.md §3 built from it.
 #![allow(dead_code, non_snake_case)]
 
 use std::path::{Path, PathBuf};
@@ -52,7 +52,7 @@ pub fn mat(rows: usize, cols: usize, data: &[f64]) -> DMatrix<f64> {
     DMatrix::from_row_slice(rows, cols, data)
 }
 
-/// Asserts the shape of a failed command's standard error (SPEC §7): exactly one line, and it
+/// Asserts the shape of a failed command's standard error (docs/theory.md §13): exactly one line, and it
 /// starts with `error: `. Returns that line.
 pub fn one_error_line(stderr: &[u8]) -> String {
     let text = String::from_utf8(stderr.to_vec()).expect("utf-8 stderr");
@@ -129,7 +129,7 @@ pub fn header(prefix: &str, width: usize, extra: &[&str]) -> Vec<String> {
     h
 }
 
-/// Solves (P2)–(P4) densely, exactly as SPEC §1 writes them: the unknowns are every `w(i)` and
+/// Solves (P2)–(P4) densely, exactly as docs/theory.md §1 writes them: the unknowns are every `w(i)` and
 /// `v(i)`; the equations are `w(i) − G(i) v(i) = z(i)`, `v⁺(i) = w⁺(i−1)` (`v⁺(1) = 0`) and
 /// `v⁻(i) = w⁻(i+1)` (`v⁻(N) = 0`). Returns `v(1..N)`, or `None` when the system is singular.
 pub fn dense_interconnect(
@@ -198,7 +198,7 @@ pub struct Sub {
     pub G: DMatrix<f64>,
 }
 
-/// The dense lifted `A_eff` (SPEC §5), column by column from unit states through
+/// The dense lifted `A_eff` (docs/theory.md §3), column by column from unit states through
 /// [`dense_interconnect`].
 pub fn dense_a_eff(plus: usize, minus: usize, subs: &[Sub]) -> DMatrix<f64> {
     let n = subs[0].A.nrows();
