@@ -119,15 +119,8 @@ fn man_page(path: &[String]) -> Result<()> {
     print_to_stdout(&page)
 }
 
-/// Reads and validates a config file.
-pub fn load_model(path: &Path) -> Result<(ConfigSource, Model)> {
-    let src = ConfigSource::from_file(path)?;
-    let model = Model::from_config(&src)?;
-    Ok((src, model))
-}
-
 fn check(path: &Path) -> Result<()> {
-    let (_, model) = load_model(path)?;
+    let model = Model::load(path)?;
     let d = model.dims;
     // Everything simulate reads: the inputs file too.
     let mut inputs = InputStream::open(&model, None)?;
@@ -231,7 +224,9 @@ fn check(path: &Path) -> Result<()> {
 }
 
 fn simulate_command(args: &SimulateArgs) -> Result<()> {
-    let (src, model) = load_model(&args.config)?;
+    // The source too: run.json records the config's text.
+    let src = ConfigSource::from_file(&args.config)?;
+    let model = Model::from_config(&src)?;
     // Fail on an ill-posed chain or unusable inputs before creating anything.
     for w in model.windows().iter().filter(|w| w.first <= model.steps) {
         ChainSolver::new(&model, w.first)?;
@@ -947,7 +942,7 @@ fn report_accuracy(r: &AccuracyReport) {
 
 fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
     use std::io::IsTerminal;
-    let (_, model) = load_model(&args.config)?;
+    let model = Model::load(&args.config)?;
     if let Some(out) = &args.out {
         check_files(
             &config_files(&args.config, &model),

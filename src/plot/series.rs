@@ -240,7 +240,7 @@ pub fn read(args: &PlotSeriesArgs) -> Result<SeriesData> {
 /// measurements or the truth. A run record that cannot be used only costs the overlay.
 fn measurement_model(config: Option<&Path>, meas: &Path, truth: &Path) -> Result<Option<Model>> {
     if let Some(path) = config {
-        return Ok(Some(crate::commands::load_model(path)?.1));
+        return Ok(Some(Model::load(path)?));
     }
     let mut dirs = vec![folder_of(meas)];
     if folder_of(truth) != dirs[0] {
