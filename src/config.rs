@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
+use crate::io::folder_of;
 
 /// A matrix as the TOML writes it: a list of rows.
 pub type RawMatrix = Vec<Vec<f64>>;
@@ -191,11 +192,7 @@ impl ConfigSource {
     /// Reads and parses a config file.
     pub fn from_file(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let dir = path
-            .parent()
-            .map(Path::to_path_buf)
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or_else(|| PathBuf::from("."));
+        let dir = folder_of(path).to_path_buf();
         Self::from_text(&path.display().to_string(), dir, text)
     }
 

@@ -95,8 +95,10 @@ pub fn check_files(inputs: &[Role], outputs: &[Role]) -> Result<()> {
     let known: Vec<(Identity, &Role)> = inputs
         .iter()
         .filter(|r| !r.is_stdio())
-        .filter(|r| r.path.exists())
-        .filter_map(|r| identity(r.path).map(|id| (id, r)))
+        .filter_map(|r| {
+            let meta = std::fs::metadata(r.path).ok()?;
+            existing_identity(r.path, &meta).map(|id| (id, r))
+        })
         .collect();
     for out in outputs
         .iter()
