@@ -21,15 +21,25 @@
 //! `S` denotes the raw second moment `E[x xᵀ]` of docs/theory.md §4, never the chain length.
 //!
 //! # Modules, in data-flow order
-//! - [`config`]: the TOML as written; [`model`]: the validated model and parameters at `(t, i)`.
-//! - [`inputs`]: `u(t, ·)`; [`simulate`]: the true system with dropouts.
-//! - [`interconnect`]: step 1, the chain solve (on [`band_lu`]); [`lifted`]: the lifted system.
-//! - [`band`]: block-banded matrices for the joint band-`k` filter (docs/theory.md §8): max-entropy
-//!   completion precision, banded Cholesky, selected inversion, banded sandwich products.
-//! - [`io`]: CSV reader and writer, atomic output files, `run.json`.
+//! - [`config`]: the TOML as written; [`model`]: the validated model and its parameters at `(t, i)`.
+//! - [`inputs`]: the inputs `u(t, ·)`, generated or read; [`simulate`]: the true system with
+//!   dropouts.
+//! - [`interconnect`]: step 1, the chain solve, on [`band_lu`] (banded LU with a condition
+//!   estimate); [`lifted`]: the whole chain as one system, its `A_eff` and spectral radius.
+//! - [`filter`]: the Nahi update, the two-step distributed filter, the centralized and the joint
+//!   band-`k` filters; [`band`]: the block-banded matrices of the joint filter (docs/theory.md §8);
+//!   [`linalg`]: small dense kernels on flat slices.
+//! - [`smoother`]: the fixed-interval smoother of each filter (docs/theory.md §9).
+//! - [`accuracy`]: RMSE and NEES against a known truth; [`evaluate`]: the Monte Carlo comparison
+//!   of the filters.
+//! - [`io`]: CSV reader and writer, atomic output files, the estimates file, `run.json`.
 //! - [`plot`]: SVG figures from those files.
-//! - [`cli`], [`commands`]: the command line; [`messages`]: the one format of standard error.
+//! - [`choice`]: the named options (filter, solver, format…) a front end offers;
+//!   [`messages`]: the one format of standard error; [`error`]: typed errors and their exit codes.
 //! - [`theory`]: `docs/theory.md`, the maths that the modules above cite.
+//!
+//! The command line (`src/main.rs` and `src/app/`, a file per command) is the binary's own:
+//! this library knows nothing of it.
 
 // Index loops mirror the formulas of docs/theory.md; iterator chains would hide them.
 #![allow(clippy::needless_range_loop)]
@@ -37,8 +47,7 @@
 pub mod accuracy;
 pub mod band;
 pub mod band_lu;
-pub mod cli;
-pub mod commands;
+pub mod choice;
 pub mod config;
 pub mod error;
 pub mod evaluate;

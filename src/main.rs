@@ -6,6 +6,8 @@ use clap::Parser;
 use clap::error::ErrorKind;
 use sisfilt::messages;
 
+mod app;
+
 /// Exit code of a run stopped by SIGINT, SIGTERM or SIGHUP (the shell's 128 + SIGINT).
 const INTERRUPTED: i32 = 130;
 
@@ -17,7 +19,7 @@ fn main() -> ExitCode {
         let _guard = sisfilt::io::remove_pending_files();
         std::process::exit(INTERRUPTED);
     });
-    let cli = match sisfilt::cli::Cli::try_parse() {
+    let cli = match app::Cli::try_parse() {
         Ok(cli) => cli,
         // --help, --version, and the help shown when no command is given.
         Err(e)
@@ -33,7 +35,7 @@ fn main() -> ExitCode {
     };
     messages::set_verbosity(cli.verbosity());
     let started = std::time::Instant::now();
-    match sisfilt::commands::run(cli.command) {
+    match app::run(cli.command) {
         Ok(()) => {
             messages::info(format!("done in {:.3} s", started.elapsed().as_secs_f64()));
             ExitCode::SUCCESS

@@ -11,6 +11,7 @@ pub mod two_step;
 use serde::Serialize;
 
 use crate::band::SymBand;
+use crate::choice::{Choice, Variant};
 use crate::interconnect::SolverKind;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
@@ -48,40 +49,117 @@ pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
     Error::check_finite(t, n * n, p, msg)
 }
 
+/// The filters `estimate` can run (the meaning of each in [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FilterKind {
+    Distributed,
+    Centralized,
+    Joint,
+}
+
+impl Choice for FilterKind {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Distributed,
+            name: "distributed",
+            help: "The two-step distributed filter of the paper (docs/theory.md §2, §4)",
+        },
+        Variant {
+            value: Self::Centralized,
+            name: "centralized",
+            help: "The optimal linear filter on the lifted system (docs/theory.md §7): O((N·n)³) per step, a yardstick; ignores --solver, --second-moment and --interconnect-from",
+        },
+        Variant {
+            value: Self::Joint,
+            name: "joint",
+            help: "The joint band-k filter (docs/theory.md §8): the lifted covariance on a band of width --band, honest covariances and near-optimal accuracy at a cost linear in N; ignores --solver and --interconnect-from",
+        },
+    ];
+}
+
 /// What the filter uses for the raw second moment `S = E[x xᵀ]` in the Nahi innovation
-/// covariance (docs/theory.md §4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+/// covariance (docs/theory.md §4; the meaning of each in [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SecondMoment {
-    /// Each subsystem propagates its own mean and covariance with the realised input (default).
     Local,
-    /// The paper's S⁺ = A S Aᵀ, right only for an uncoupled subsystem without input and Q = 0.
     Paper,
-    /// The exact diagonal blocks of E[X Xᵀ] of the lifted system: O((N·n)²) memory, for
-    /// reference on small chains.
     Lifted,
-    /// The joint filter's own moment band (docs/theory.md §8; its default, joint filter only).
     Band,
 }
 
-/// Which estimate of `x(t, ·)` feeds step 1 (docs/theory.md §4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+impl Choice for SecondMoment {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Local,
+            name: "local",
+            help: "Each subsystem propagates its own mean and covariance with the realised input (default)",
+        },
+        Variant {
+            value: Self::Paper,
+            name: "paper",
+            help: "The paper's S⁺ = A S Aᵀ, right only for an uncoupled subsystem without input and Q = 0",
+        },
+        Variant {
+            value: Self::Lifted,
+            name: "lifted",
+            help: "The exact diagonal blocks of E[X Xᵀ] of the lifted system: O((N·n)²) memory, for reference on small chains",
+        },
+        Variant {
+            value: Self::Band,
+            name: "band",
+            help: "The joint filter's own moment band (docs/theory.md §8; its default, joint filter only)",
+        },
+    ];
+}
+
+/// Which estimate of `x(t, ·)` feeds step 1 (docs/theory.md §4; the meaning of each in
+/// [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum InterconnectFrom {
-    /// x̂(t|t), the filtered estimate (default).
     Filtered,
-    /// x̂(t|t−1), the one-step prediction (the paper's reading).
     Predicted,
 }
 
-/// Whether the filter knows which measurements were lost (docs/theory.md §1).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+impl Choice for InterconnectFrom {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Filtered,
+            name: "filtered",
+            help: "x̂(t|t), the filtered estimate (default)",
+        },
+        Variant {
+            value: Self::Predicted,
+            name: "predicted",
+            help: "x̂(t|t−1), the one-step prediction (the paper's reading)",
+        },
+    ];
+}
+
+/// Whether the filter knows which measurements were lost (docs/theory.md §1; the meaning of
+/// each in [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dropouts {
-    /// The paper's model: a lost measurement is pure noise and looks like any other.
     Unknown,
-    /// Lost elements are empty cells in the measurement file; they are skipped.
     Known,
+}
+
+impl Choice for Dropouts {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Unknown,
+            name: "unknown",
+            help: "The paper's model: a lost measurement is pure noise and looks like any other",
+        },
+        Variant {
+            value: Self::Known,
+            name: "known",
+            help: "Lost elements are empty cells in the measurement file; they are skipped",
+        },
+    ];
 }
 
 /// Options of the two-step filter.

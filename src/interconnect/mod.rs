@@ -19,18 +19,31 @@ mod transfer;
 pub use banded::{ChainSolver, MAX_CONDITION};
 pub use transfer::{TRANSFER_ERROR_WARNING, TransferSolver};
 
+use crate::choice::{Choice, Variant};
 use crate::error::Result;
 use crate::model::Model;
 
-/// Which step-1 solver to use.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+/// Which step-1 solver to use (the meaning of each in [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SolverKind {
-    /// Block-banded LU with partial pivoting: stable, O(N) per step (default).
     Banded,
-    /// The paper's transfer-matrix recursion: needs interior G22 invertible and loses
-    /// accuracy exponentially with the chain length.
     Transfer,
+}
+
+impl Choice for SolverKind {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Banded,
+            name: "banded",
+            help: "Block-banded LU with partial pivoting: stable, O(N) per step (default)",
+        },
+        Variant {
+            value: Self::Transfer,
+            name: "transfer",
+            help: "The paper's transfer-matrix recursion: needs interior G22 invertible and loses accuracy exponentially with the chain length",
+        },
+    ];
 }
 
 /// A step-1 solver of either kind, prepared for some time step.

@@ -13,15 +13,31 @@ use crate::band::SymBand;
 use crate::error::{Error, Result};
 use rayon::prelude::*;
 
+use crate::choice::{Choice, Variant};
 use crate::io::Output;
 use crate::io::csv_out::NumberFormat;
 
 /// Output format of `estimate`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Format {
     Csv,
     Json,
+}
+
+impl Choice for Format {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Csv,
+            name: "csv",
+            help: "",
+        },
+        Variant {
+            value: Self::Json,
+            name: "json",
+            help: "",
+        },
+    ];
 }
 
 /// The column names of an estimates file with state dimension `n`.

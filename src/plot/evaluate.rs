@@ -22,7 +22,6 @@ use super::{
     commit_svg, decade_range, draw_centered, draw_legend, fmt_tick, font, header_height,
     legend_lines, log_axis, open_output, padded,
 };
-use crate::cli::PlotEvaluateArgs;
 use crate::error::Error;
 use crate::io::Role;
 
@@ -82,11 +81,12 @@ struct OptionsDoc {
     burn_in: usize,
 }
 
-/// `sisfilt plot evaluate`.
-pub fn run(args: &PlotEvaluateArgs) -> Result<()> {
-    let out = open_output(&args.out, &[Role::new("the evaluate JSON", &args.input)])?;
-    let doc = read(&args.input)?;
-    let svg = render(&doc, &args.input)?;
+/// `sisfilt plot evaluate`: the figure of the JSON `input` (written by `evaluate --out`)
+/// into the SVG file `out`.
+pub fn run(input: &Path, out: &Path) -> Result<()> {
+    let out = open_output(out, &[Role::new("the evaluate JSON", input)])?;
+    let doc = read(input)?;
+    let svg = render(&doc, input)?;
     commit_svg(out, &svg)
 }
 

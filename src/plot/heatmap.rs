@@ -7,6 +7,8 @@
 //! horizon is longer than the picture has room for, a cell stands for a block of `(t, i)` and
 //! shows their root mean square (the title says so).
 
+use std::path::PathBuf;
+
 use anyhow::Result;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -16,7 +18,6 @@ use super::{
     Area, DESC_SIZE, LABEL_SIZE, TITLE_SIZE, WIDTH, commit_svg, draw_centered, fmt_tick, font,
     open_output,
 };
-use crate::cli::PlotHeatmapArgs;
 use crate::error::Error;
 use crate::io::Role;
 
@@ -35,8 +36,23 @@ pub struct ErrorMap {
     pub estimates: String,
 }
 
+/// What `plot heatmap` maps, from which files, and where.
+#[derive(Debug, Clone)]
+pub struct HeatmapPlot {
+    /// Estimates written by `estimate` (CSV or JSON).
+    pub estimates: PathBuf,
+    /// Truth written by `simulate`.
+    pub truth: PathBuf,
+    /// The state element `k` (1..n).
+    pub state: usize,
+    /// Map the plain error `|x̂ − x|` instead of `|x̂ − x| / σ`.
+    pub plain: bool,
+    /// The SVG file to write.
+    pub out: PathBuf,
+}
+
 /// `sisfilt plot heatmap`.
-pub fn run(args: &PlotHeatmapArgs) -> Result<()> {
+pub fn run(args: &HeatmapPlot) -> Result<()> {
     let inputs = [
         Role::new("--truth", &args.truth),
         Role::new("--estimates", &args.estimates),
@@ -48,7 +64,7 @@ pub fn run(args: &PlotHeatmapArgs) -> Result<()> {
 }
 
 /// Reads truth and estimates in lock-step, keeping the error of state `k`.
-pub fn read(args: &PlotHeatmapArgs) -> Result<ErrorMap> {
+pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
     let mut truth = TruthFile::open(&args.truth)?;
     let mut est = EstimatesFile::open(&args.estimates)?;
     let truth_name = truth.reader.name().to_string();

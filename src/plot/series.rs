@@ -24,7 +24,6 @@ use super::{
     SMOOTHED, Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick,
     font, header_height, legend_lines, open_output, padded,
 };
-use crate::cli::PlotSeriesArgs;
 use crate::error::Error;
 use crate::io::{Role, RunRecord, folder_of};
 use crate::messages::warn;
@@ -62,8 +61,29 @@ pub struct SeriesData {
     pub meas: Option<Measured>,
 }
 
+/// What `plot series` draws, from which files, and where.
+#[derive(Debug, Clone)]
+pub struct SeriesPlot {
+    /// Estimates written by `estimate` (CSV or JSON).
+    pub estimates: PathBuf,
+    /// Truth written by `simulate` (`t,i,x1..xn,gamma`).
+    pub truth: PathBuf,
+    /// Measurements (`t,i,y1..yq`), drawn when given.
+    pub meas: Option<PathBuf>,
+    /// Second estimates (e.g. smoothed), drawn with their own band.
+    pub smoothed: Option<PathBuf>,
+    /// The config, to learn `J` (else the run record beside `meas` or `truth`).
+    pub config: Option<PathBuf>,
+    /// The subsystem `i` (1..N).
+    pub subsystem: usize,
+    /// The state element `k` (1..n).
+    pub state: usize,
+    /// The SVG file to write.
+    pub out: PathBuf,
+}
+
 /// `sisfilt plot series`.
-pub fn run(args: &PlotSeriesArgs) -> Result<()> {
+pub fn run(args: &SeriesPlot) -> Result<()> {
     let mut inputs = vec![
         Role::new("--truth", &args.truth),
         Role::new("--estimates", &args.estimates),
@@ -100,7 +120,7 @@ fn file_name(path: &Path) -> String {
 }
 
 /// Reads the files of `args` in lock-step and keeps subsystem `i`, state `k`.
-pub fn read(args: &PlotSeriesArgs) -> Result<SeriesData> {
+pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
     let mut truth = TruthFile::open(&args.truth)?;
     let mut est = EstimatesFile::open(&args.estimates)?;
     let mut smooth = args

@@ -1,392 +1,119 @@
-//! The commands behind the command line: each reads its inputs, runs the library and writes
-//! its outputs. Warnings go to standard error through [`warn`] (see [`crate::messages`]); data to
-//! standard output or files.
+//! `sisfilt estimate`: runs a filter (or smoother) over a measurement file and writes the
+//! estimates `x̂` with their error covariances `P` (docs/theory.md §13).
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, Result};
-
+use anyhow::Result;
 use sha2::Digest;
 
-use crate::accuracy::{Accuracy, AccuracyReport};
-use crate::cli::FilterKind;
-use crate::cli::{Command, EstimateArgs, EvaluateArgs, PlotCommand, SimulateArgs};
-use crate::config::ConfigSource;
-use crate::error::Error;
-use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
-use crate::filter::{
-    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
-    TwoStepOptions, check_estimates, two_step,
+use sisfilt::accuracy::{Accuracy, AccuracyReport};
+use sisfilt::config::ConfigSource;
+use sisfilt::error::Error;
+use sisfilt::filter::joint::DEFAULT_BAND;
+use sisfilt::filter::{
+    CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
+    JointOptions, SecondMoment, TwoStepOptions, check_estimates, two_step,
 };
-use crate::inputs::{InputStream, open_csv};
-use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
-use crate::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
-use crate::io::{CsvWriter, Output, Role, RunRecord, StepLayout, check_files, folder_of};
-use crate::lifted::{a_eff_band, spectral_radius};
-use crate::messages::{Verbosity, info, verbosity};
-use crate::model::{MATRIX_KEYS, Model};
-use crate::simulate::simulate;
-use crate::smoother::{
+use sisfilt::inputs::{InputStream, open_csv};
+use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
+use sisfilt::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
+use sisfilt::io::{Output, Role, RunRecord, StepLayout, StepReader, check_files, folder_of};
+use sisfilt::lifted::spectral_radius;
+use sisfilt::messages::{info, warn};
+use sisfilt::model::Model;
+use sisfilt::smoother::{
     CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
     SmootherKind, human_bytes, memory_bytes,
 };
 
-/// Power-iteration steps for the spectral radius: `check` takes its time, `estimate` only
-/// wants a quick stability warning.
-const CHECK_POWER_STEPS: usize = 4000;
-const ESTIMATE_POWER_STEPS: usize = 400;
+use super::choice::choice;
+
+/// Power-iteration steps of the quick stability warning (`check` takes more).
+const POWER_STEPS: usize = 400;
 /// Above this many lifted states `estimate` skips its stability check (`check` still does it).
-const ESTIMATE_STABILITY_CHECK_MAX: usize = 100_000;
+const STABILITY_CHECK_MAX: usize = 100_000;
 
 /// Chains at least this long parse the measurement and input files of a step in parallel
 /// (shorter steps cost less than waking a thread).
 const PARALLEL_READ_MIN: usize = 512;
 
-pub use crate::messages::warn;
-
-/// Writes `text` and a line break to standard output; a closed pipe comes back as an
-/// [`Error::Io`] of kind `BrokenPipe`, which the binary ends quietly with exit 0
-/// (`println!` would panic instead).
-fn print_stdout(text: &str) -> Result<()> {
-    let mut out = Output::create(Path::new("-"))?;
-    writeln!(out, "{text}").map_err(|e| Error::io("<stdout>", e))?;
-    out.commit()?;
-    Ok(())
+#[derive(Debug, clap::Args)]
+pub struct EstimateArgs {
+    /// The TOML config. May be left out when --meas was written by `simulate`: the config
+    /// recorded in run.json beside it is used.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Measurement CSV (`t,i,y1..yq`), or - for standard input.
+    #[arg(long)]
+    pub meas: PathBuf,
+    /// Inputs CSV (`t,i,u1..um`); default: inputs.csv beside a simulated --meas, else the
+    /// config's input table.
+    #[arg(long)]
+    pub inputs: Option<PathBuf>,
+    /// Output file, or - for standard output.
+    #[arg(long, default_value = "-")]
+    pub out: PathBuf,
+    /// Output format (default: json when --out ends in .json, else csv).
+    #[arg(long, value_parser = choice::<Format>())]
+    pub format: Option<Format>,
+    /// Which filter to run.
+    #[arg(long, value_parser = choice::<FilterKind>(), default_value = "distributed")]
+    pub filter: FilterKind,
+    /// Step-1 solver [default: banded; transfer with --paper].
+    #[arg(long, value_parser = choice::<SolverKind>())]
+    pub solver: Option<SolverKind>,
+    /// Second moment S = E[x xᵀ] in the Nahi filter [default: local; paper with --paper;
+    /// band for --filter joint].
+    #[arg(long, value_parser = choice::<SecondMoment>())]
+    pub second_moment: Option<SecondMoment>,
+    /// Estimate fed to step 1 [default: filtered; predicted with --paper].
+    #[arg(long, value_parser = choice::<InterconnectFrom>())]
+    pub interconnect_from: Option<InterconnectFrom>,
+    /// unknown: lost measurements look like noise (the paper's model); known: lost elements
+    /// are empty cells and are skipped.
+    #[arg(long, value_parser = choice::<Dropouts>(), default_value = "unknown")]
+    pub dropouts: Dropouts,
+    /// Exactly the paper's algorithm: --solver transfer --interconnect-from predicted
+    /// --second-moment paper (explicit options win).
+    #[arg(long)]
+    pub paper: bool,
+    /// Write x̂(t+1|t) with T(t+1) on row t instead of x̂(t|t), P(t|t).
+    #[arg(long)]
+    pub predicted: bool,
+    /// Truth CSV (`t,i,x1..xn,gamma`): report RMSE per state element and average NEES.
+    #[arg(long)]
+    pub truth: Option<PathBuf>,
+    /// Largest lifted state size N·n the centralized filter accepts.
+    #[arg(long, default_value_t = sisfilt::filter::centralized::DEFAULT_MAX_LIFTED)]
+    pub max_lifted: usize,
+    /// Write the smoothed x̂(t|T) with P(t|T), from every measurement of the file, instead of
+    /// the filtered estimates (docs/theory.md §9): per-subsystem RTS for distributed, RTS for
+    /// centralized, the information form for joint.
+    #[arg(long, conflicts_with = "predicted")]
+    pub smooth: bool,
+    /// Largest memory the smoother's stored forward pass may take: bytes, or with a K, M or G
+    /// suffix [default: 8G].
+    #[arg(long, value_name = "BYTES", value_parser = parse_max_memory)]
+    pub max_memory: Option<u64>,
+    /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: 2].
+    #[arg(long, value_name = "K")]
+    pub band: Option<usize>,
+    /// Joint filter: relative size below which blocks of A_eff are dropped [default: 1e-9].
+    #[arg(long, value_name = "TOL")]
+    pub band_tol: Option<f64>,
+    /// Joint filter: diagonal loading ε of the prior band, P_ii += ε tr(P_ii)/n I
+    /// [default: 1e-9 when every Q is zero, else 0].
+    #[arg(long, value_name = "EPS")]
+    pub loading: Option<f64>,
+    /// Print on standard error the wall-clock time spent reading the input files, filtering
+    /// and handing the estimates to the writer thread, and the time that thread spent
+    /// formatting and writing them (a `timings:` line).
+    #[arg(long)]
+    pub timings: bool,
 }
 
-/// Runs one command.
-pub fn run(command: Command) -> Result<()> {
-    match command {
-        Command::Check { config } => check(&config),
-        Command::Simulate(args) => simulate_command(&args),
-        // On a worker of rayon's pool, so that the parallel loops of every step (filter,
-        // writer, readers) start without waking the pool from outside each time.
-        Command::Estimate(args) => rayon::scope(|_| estimate(&args)),
-        Command::Evaluate(args) => evaluate_command(&args),
-        Command::Plot(PlotCommand::Series(args)) => crate::plot::series::run(&args),
-        Command::Plot(PlotCommand::Heatmap(args)) => crate::plot::heatmap::run(&args),
-        Command::Plot(PlotCommand::Evaluate(args)) => crate::plot::evaluate::run(&args),
-        Command::Completions { shell } => completions(shell),
-        Command::Man { command } => man_page(&command),
-    }
-}
-
-/// Writes `text` to standard output (quietly stopping on a closed pipe, like every output).
-fn print_to_stdout(text: &[u8]) -> Result<()> {
-    let mut out = Output::create(Path::new("-"))?;
-    std::io::Write::write_all(&mut out, text).map_err(|e| Error::io("<stdout>", e))?;
-    out.commit()?;
-    Ok(())
-}
-
-/// `sisfilt completions SHELL`: the completion script, generated from the clap definition.
-fn completions(shell: clap_complete::Shell) -> Result<()> {
-    let mut cmd = <crate::cli::Cli as clap::CommandFactory>::command();
-    let mut script = Vec::new();
-    clap_complete::generate(shell, &mut cmd, "sisfilt", &mut script);
-    print_to_stdout(&script)
-}
-
-/// `sisfilt man [COMMAND…]`: the man page (roff) of `sisfilt` or of one of its commands
-/// (`sisfilt man plot series` is the page `sisfilt-plot-series(1)`).
-fn man_page(path: &[String]) -> Result<()> {
-    let mut cmd = <crate::cli::Cli as clap::CommandFactory>::command();
-    // Building propagates the global options (--quiet, --verbose) into every command.
-    cmd.build();
-    let mut name = "sisfilt".to_string();
-    for word in path {
-        let Some(sub) = cmd.find_subcommand(word).cloned() else {
-            let known: Vec<&str> = cmd
-                .get_subcommands()
-                .map(clap::Command::get_name)
-                .filter(|n| *n != "help")
-                .collect();
-            return Err(Error::Usage(format!(
-                "man: `{name}` has no command `{word}`; expected one of: {}",
-                known.join(", ")
-            ))
-            .into());
-        };
-        name = format!("{name}-{word}");
-        cmd = sub;
-    }
-    let cmd = cmd.name(name).version(env!("CARGO_PKG_VERSION"));
-    let mut page = Vec::new();
-    clap_mangen::Man::new(cmd)
-        .render(&mut page)
-        .context("rendering the man page")?;
-    print_to_stdout(&page)
-}
-
-fn check(path: &Path) -> Result<()> {
-    let model = Model::load(path)?;
-    let d = model.dims;
-    // Everything simulate reads: the inputs file too.
-    let mut inputs = InputStream::open(&model, None)?;
-    let mut u = vec![0.0; model.subsystems * d.m];
-    for t in 1..=model.steps {
-        inputs.next(t, &mut u)?;
-    }
-    inputs.finish(model.steps)?;
-
-    let mut report: Vec<String> = Vec::new();
-    let mut warnings: Vec<String> = Vec::new();
-    report.push(format!("config: {}", path.display()));
-    report.push(format!(
-        "chain: N = {} subsystems, T = {} steps",
-        model.subsystems, model.steps
-    ));
-    report.push(format!(
-        "dimensions: n = {}, m = {}, q = {}, plus = {}, minus = {}",
-        d.n, d.m, d.q, d.plus, d.minus
-    ));
-    let mut varying = Vec::new();
-    for key in MATRIX_KEYS.iter().copied().chain(["p"]) {
-        let (time, space) = model.variation(key);
-        let how = match (time, space) {
-            (true, true) => "time and space",
-            (true, false) => "time",
-            (false, true) => "space",
-            (false, false) => continue,
-        };
-        varying.push(format!("{key} ({how})"));
-    }
-    report.push(format!(
-        "varying parameters: {}",
-        if varying.is_empty() {
-            "none".to_string()
-        } else {
-            varying.join(", ")
-        }
-    ));
-    report.push(format!(
-        "process noise: {}",
-        if model.q_is_zero() {
-            "Q = 0 (the paper's setting)"
-        } else {
-            "Q > 0"
-        }
-    ));
-    let windows = model.windows();
-    for (k, w) in windows.iter().enumerate() {
-        if w.first > model.steps {
-            break;
-        }
-        let last = windows
-            .get(k + 1)
-            .map_or(model.steps, |n| (n.first - 1).min(model.steps));
-        let solver = ChainSolver::new(&model, w.first)?;
-        let rho = spectral_radius(&model, w.first, CHECK_POWER_STEPS)?;
-        let b = a_eff_band(&model, w.first, &solver, DEFAULT_BAND_TOL).half_width();
-        let k = DEFAULT_BAND.min(model.subsystems - 1);
-        let joint_line = format!(
-            "t = {}..{}: A_eff band half-width b = {b} (tol {DEFAULT_BAND_TOL:e}); joint filter (--band {k}): about {:.1} kflop per subsystem-step",
-            w.first,
-            last,
-            flops_per_subsystem_step(d.n, k, b, model.subsystems, true) / 1e3,
-        );
-        report.push(format!(
-            "t = {}..{}: interconnection condition estimate {:.3e} (1-norm), spectral radius of A_eff {:.6} ({})",
-            w.first,
-            last,
-            solver.condition(),
-            rho.value,
-            if rho.exact {
-                "exact"
-            } else {
-                "power-iteration estimate"
-            }
-        ));
-        report.push(joint_line);
-        if rho.value >= 1.0 {
-            warnings.push(format!(
-                "t = {}..{last}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
-                w.first, rho.value
-            ));
-        }
-    }
-    let k = DEFAULT_BAND.min(model.subsystems - 1);
-    report.push(format!(
-        "smoothing memory for T = {}: distributed {}, joint (--band {k}) {}, centralized {} (--max-memory, default {})",
-        model.steps,
-        human_bytes(memory_bytes(&model, SmootherKind::Distributed, model.steps)),
-        human_bytes(memory_bytes(&model, SmootherKind::Joint(k), model.steps)),
-        human_bytes(memory_bytes(&model, SmootherKind::Centralized, model.steps)),
-        human_bytes(DEFAULT_MAX_MEMORY),
-    ));
-    // Print only once everything passed, so that a bad config prints nothing on stdout.
-    print_stdout(&report.join("\n"))?;
-    for w in warnings {
-        warn(w);
-    }
-    Ok(())
-}
-
-fn simulate_command(args: &SimulateArgs) -> Result<()> {
-    // The source too: run.json records the config's text.
-    let src = ConfigSource::from_file(&args.config)?;
-    let model = Model::from_config(&src)?;
-    // Fail on an ill-posed chain or unusable inputs before creating anything.
-    for w in model.windows().iter().filter(|w| w.first <= model.steps) {
-        ChainSolver::new(&model, w.first)?;
-    }
-    let out_dir = &args.out;
-    let read = config_files(&args.config, &model);
-    let written: Vec<PathBuf> = simulation_files(model.dims.m)
-        .map(|name| out_dir.join(name))
-        .collect();
-    let written: Vec<Role> = written.iter().map(|p| Role::new("--out", p)).collect();
-    check_files(&read, &written)?;
-    let inputs = InputStream::open(&model, None)?;
-    if out_dir.exists() && !out_dir.is_dir() {
-        return Err(Error::Usage(format!(
-            "--out {}: exists and is not a folder",
-            out_dir.display()
-        ))
-        .into());
-    }
-    // The folders this run creates, innermost first: a failed run removes them again.
-    let created: Vec<PathBuf> = out_dir
-        .ancestors()
-        .take_while(|a| !a.as_os_str().is_empty() && !a.exists())
-        .map(Path::to_path_buf)
-        .collect();
-    std::fs::create_dir_all(out_dir).map_err(|e| {
-        Error::Usage(format!(
-            "--out {}: cannot create the folder: {e}",
-            out_dir.display()
-        ))
-    })?;
-    let result = write_simulation(args, &src, &model, inputs);
-    if result.is_err() {
-        for dir in &created {
-            // Fails, and so keeps the folder, if anything else appeared in it meanwhile.
-            if std::fs::remove_dir(dir).is_err() {
-                break;
-            }
-        }
-    }
-    result
-}
-
-/// The files a run of `model` reads: its config, and the inputs file the config names.
-fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
-    let mut read = vec![Role::new("the config", config)];
-    if let Some(path) = InputStream::path(model, None) {
-        read.push(Role::new("the inputs file", path));
-    }
-    read
-}
-
-/// The files `simulate` writes into its folder, for a model with `m` inputs.
-fn simulation_files(m: usize) -> impl Iterator<Item = &'static str> {
-    ["truth.csv", "measurements.csv"]
-        .into_iter()
-        .chain((m > 0).then_some("inputs.csv"))
-        .chain([RunRecord::FILE])
-}
-
-/// Simulates and writes the files of `simulate` into the existing folder `args.out`; each file
-/// appears (atomically) only once every file is complete.
-fn write_simulation(
-    args: &SimulateArgs,
-    src: &ConfigSource,
-    model: &Model,
-    mut inputs: InputStream,
-) -> Result<()> {
-    let out_dir = &args.out;
-    let seed = args.seed.unwrap_or(model.seed);
-    let d = model.dims;
-    let file = |name: &str| -> Result<Output> { Ok(Output::create(&out_dir.join(name))?) };
-    let header = |prefix: &str, width: usize, extra: &[&str]| -> Vec<String> {
-        let mut h = vec!["t".to_string(), "i".to_string()];
-        h.extend((1..=width).map(|k| format!("{prefix}{k}")));
-        h.extend(extra.iter().map(|s| s.to_string()));
-        h
-    };
-    let io_err = |name: &'static str| move |e| Error::io(name, e);
-    let mut truth = CsvWriter::new(file("truth.csv")?, &header("x", d.n, &["gamma"]))
-        .map_err(io_err("truth.csv"))?;
-    let mut meas = CsvWriter::new(file("measurements.csv")?, &header("y", d.q, &[]))
-        .map_err(io_err("measurements.csv"))?;
-    let mut inputs_out = if d.m > 0 {
-        Some(
-            CsvWriter::new(file("inputs.csv")?, &header("u", d.m, &[]))
-                .map_err(io_err("inputs.csv"))?,
-        )
-    } else {
-        None
-    };
-    let mut record_out = file(RunRecord::FILE)?;
-
-    let mut y_row = vec![0.0; d.q];
-    simulate(model, model.steps, seed, &mut inputs, |step| {
-        for i in 0..model.subsystems {
-            let gamma = step.gamma[i];
-            truth
-                .row(
-                    step.t,
-                    i + 1,
-                    &step.x[i * d.n..(i + 1) * d.n],
-                    Some(gamma as u8),
-                )
-                .map_err(|e| Error::io("truth.csv", e))?;
-            y_row.copy_from_slice(&step.y[i * d.q..(i + 1) * d.q]);
-            if args.mark_missing && !gamma {
-                y_row.fill(f64::NAN);
-            }
-            meas.row(step.t, i + 1, &y_row, None)
-                .map_err(|e| Error::io("measurements.csv", e))?;
-            if let Some(w) = inputs_out.as_mut() {
-                w.row(step.t, i + 1, &step.u[i * d.m..(i + 1) * d.m], None)
-                    .map_err(|e| Error::io("inputs.csv", e))?;
-            }
-        }
-        Ok(())
-    })?;
-    inputs.finish(model.steps)?;
-
-    let mut files = vec!["truth.csv".to_string(), "measurements.csv".to_string()];
-    if d.m > 0 {
-        files.push("inputs.csv".into());
-    }
-    let config_dir = RunRecord::relative_dir(out_dir, &src.dir);
-    let record = RunRecord {
-        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
-        seed,
-        subsystems: model.subsystems,
-        steps: model.steps,
-        mark_missing: args.mark_missing,
-        config_path: args.config.display().to_string(),
-        config_dir,
-        config_toml: src.text.clone(),
-        config: src.raw.clone(),
-        files,
-    };
-    serde_json::to_writer_pretty(&mut record_out, &record).context("writing run.json")?;
-    std::io::Write::write_all(&mut record_out, b"\n").map_err(|e| Error::io("run.json", e))?;
-
-    truth
-        .into_inner()
-        .map_err(|e| Error::io("truth.csv", e))?
-        .commit()?;
-    meas.into_inner()
-        .map_err(|e| Error::io("measurements.csv", e))?
-        .commit()?;
-    if let Some(w) = inputs_out {
-        w.into_inner()
-            .map_err(|e| Error::io("inputs.csv", e))?
-            .commit()?;
-    }
-    record_out.commit()?;
-    info(format!(
-        "simulate: T = {} steps × N = {} subsystems (seed {seed}) into {}",
-        model.steps,
-        model.subsystems,
-        out_dir.display()
-    ));
-    Ok(())
+fn parse_max_memory(text: &str) -> Result<u64, String> {
+    sisfilt::smoother::parse_bytes(text)
 }
 
 /// The measurement file's layout: `t,i,y1..yq`; empty cells only in the known-dropout mode.
@@ -442,7 +169,9 @@ fn sha256_hex(text: &str) -> String {
         .collect()
 }
 
-fn estimate(args: &EstimateArgs) -> Result<()> {
+/// `sisfilt estimate`: the estimates of every `(t, i)`, written as they come (or, with
+/// `--smooth`, after the backward pass).
+pub fn run(args: &EstimateArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let (src, run_dir) = estimate_config(args)?;
     let model = Model::from_config(&src)?;
@@ -526,8 +255,8 @@ fn estimate(args: &EstimateArgs) -> Result<()> {
             );
         }
     }
-    if opts.dropouts == Dropouts::Unknown && big_n * n <= ESTIMATE_STABILITY_CHECK_MAX {
-        let rho = spectral_radius(&model, 1, ESTIMATE_POWER_STEPS)?;
+    if opts.dropouts == Dropouts::Unknown && big_n * n <= STABILITY_CHECK_MAX {
+        let rho = spectral_radius(&model, 1, POWER_STEPS)?;
         if rho.value >= 1.0 {
             warn(format!(
                 "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
@@ -712,9 +441,9 @@ fn make_smoother<'m>(
 
 /// The files of a smoothing run.
 struct SmootherIo<R: std::io::Read, T: std::io::Read> {
-    meas: crate::io::StepReader<R>,
+    meas: StepReader<R>,
     inputs: InputStream,
-    truth: Option<crate::io::StepReader<T>>,
+    truth: Option<StepReader<T>>,
     writer: EstimatesWriter,
 }
 
@@ -808,7 +537,7 @@ fn scored(accuracy: &Accuracy) -> Result<AccuracyReport> {
 /// Reads the truth of step `t` into `out`; a truth file that ends before the measurements is
 /// bad input.
 fn read_truth_step<R: std::io::Read>(
-    truth: &mut crate::io::StepReader<R>,
+    truth: &mut StepReader<R>,
     t: usize,
     out: &mut [f64],
 ) -> Result<()> {
@@ -925,7 +654,7 @@ impl PhaseClock {
 
 /// Prints accuracy figures on standard error, with the NEES warning of docs/theory.md §11.
 fn report_accuracy(r: &AccuracyReport) {
-    crate::messages::report("accuracy", r.summary());
+    sisfilt::messages::report("accuracy", r.summary());
     if r.nees_left_out > 0 {
         warn(format!(
             "NEES: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (docs/theory.md §11)",
@@ -938,92 +667,4 @@ fn report_accuracy(r: &AccuracyReport) {
             r.nees_infinite
         ));
     }
-}
-
-fn evaluate_command(args: &EvaluateArgs) -> Result<()> {
-    use std::io::IsTerminal;
-    let model = Model::load(&args.config)?;
-    if let Some(out) = &args.out {
-        check_files(
-            &config_files(&args.config, &model),
-            &[Role::new("--out", out)],
-        )?;
-    }
-    let out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
-    let opts = crate::evaluate::EvaluateOptions {
-        runs: args.runs,
-        seed: args.seed.unwrap_or(model.seed),
-        burn_in: args.burn_in,
-        max_lifted: args.max_lifted,
-        band: args.band,
-        filters: args.filters.clone(),
-        smooth: args.smooth,
-    };
-    let config_name = args.config.display().to_string();
-    let sweep = args.sweep_p.as_deref();
-    let total_runs = args.runs * sweep.map_or(1, <[f64]>::len);
-    let bar = if std::io::stderr().is_terminal() && verbosity() >= Verbosity::Normal {
-        indicatif::ProgressBar::new(total_runs as u64)
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
-    info(format!(
-        "evaluate: {total_runs} runs of T = {} × N = {} on {} threads",
-        model.steps,
-        model.subsystems,
-        rayon::current_num_threads()
-    ));
-    if let Some(values) = sweep {
-        let result = crate::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))?;
-        bar.finish_and_clear();
-        info(format!("evaluate: {:.2} s", result.total_wall_time_s));
-        for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
-            warn_left_out(e, &format!(" at p = {p}"));
-        }
-        write_json(out, &result)?;
-        return print_stdout(result.table().trim_end_matches('\n'));
-    }
-    let result = crate::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))?;
-    bar.finish_and_clear();
-    info(format!(
-        "evaluate: {:.2} s ({})",
-        result.total_wall_time_s,
-        result
-            .filters
-            .iter()
-            .map(|f| format!("{} {:.2} s", f.name, f.wall_time_s))
-            .collect::<Vec<_>>()
-            .join(", ")
-    ));
-    warn_left_out(&result, "");
-    // The file first: a reader of the table that stops early must not cost the JSON.
-    write_json(out, &result)?;
-    print_stdout(result.table().trim_end_matches('\n'))
-}
-
-/// The NEES warning of docs/theory.md §11 for each filter of an evaluation.
-fn warn_left_out(result: &crate::evaluate::Evaluation, context: &str) {
-    for f in &result.filters {
-        for note in &f.notes {
-            warn(format!("{}{context}: {note}", f.name));
-        }
-        if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
-            warn(format!(
-                "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (docs/theory.md §11)",
-                f.name, a.nees_left_out, a.terms
-            ));
-        }
-    }
-}
-
-/// Writes the JSON of `evaluate --out`, when asked for.
-fn write_json(out: Option<Output>, value: &impl serde::Serialize) -> Result<()> {
-    if let Some(mut out) = out {
-        let name = out.name();
-        serde_json::to_writer_pretty(&mut out, value).context("writing the evaluation")?;
-        std::io::Write::write_all(&mut out, b"\n").map_err(|e| Error::io(&name, e))?;
-        out.commit()?;
-        info(format!("wrote {name}"));
-    }
-    Ok(())
 }

@@ -1,0 +1,139 @@
+//! `sisfilt evaluate`: a Monte Carlo comparison of the filters (docs/theory.md §11).
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+
+use sisfilt::error::Error;
+use sisfilt::io::{Output, Role, check_files};
+use sisfilt::messages::{Verbosity, info, verbosity, warn};
+use sisfilt::model::Model;
+
+use super::{config_files, print_line};
+
+#[derive(Debug, clap::Args)]
+pub struct EvaluateArgs {
+    /// The TOML config.
+    pub config: PathBuf,
+    /// Number of independent realisations.
+    #[arg(long)]
+    pub runs: usize,
+    /// Seed of the first run; run r uses seed + r (default: the config's `seed`).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Write the results as JSON to this file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Leave the steps t ≤ BURN_IN out of the figures (the initial transient).
+    #[arg(long, default_value_t = 0)]
+    pub burn_in: usize,
+    /// Largest lifted state size N·n for the centralized filters (skipped above it).
+    #[arg(long, default_value_t = sisfilt::filter::centralized::DEFAULT_MAX_LIFTED)]
+    pub max_lifted: usize,
+    /// The joint filter's covariance band K.
+    #[arg(long, value_name = "K", default_value_t = sisfilt::filter::joint::DEFAULT_BAND)]
+    pub band: usize,
+    /// Run only these filters (comma-separated; default: all): distributed,
+    /// distributed-paper, joint, centralized, centralized-known, naive, and the smoothers
+    /// distributed-smoother, joint-smoother, centralized-smoother.
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    pub filters: Vec<String>,
+    /// Also run the smoothers of docs/theory.md §9 (distributed-smoother, joint-smoother,
+    /// centralized-smoother); their RMSE ratio is to the centralized smoother.
+    #[arg(long)]
+    pub smooth: bool,
+    /// Repeat the evaluation for each arrival probability in this comma-separated list (e.g.
+    /// 0.5,0.7,0.9), which replaces the config's p everywhere (`[dropout]` and overrides); the
+    /// same seeds serve every value.
+    #[arg(long, value_delimiter = ',')]
+    pub sweep_p: Option<Vec<f64>>,
+}
+
+/// `sisfilt evaluate`: the table on standard output, the JSON in `--out`.
+pub fn run(args: &EvaluateArgs) -> Result<()> {
+    let model = Model::load(&args.config)?;
+    if let Some(out) = &args.out {
+        check_files(
+            &config_files(&args.config, &model),
+            &[Role::new("--out", out)],
+        )?;
+    }
+    let out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
+    let opts = sisfilt::evaluate::EvaluateOptions {
+        runs: args.runs,
+        seed: args.seed.unwrap_or(model.seed),
+        burn_in: args.burn_in,
+        max_lifted: args.max_lifted,
+        band: args.band,
+        filters: args.filters.clone(),
+        smooth: args.smooth,
+    };
+    let config_name = args.config.display().to_string();
+    let sweep = args.sweep_p.as_deref();
+    let total_runs = args.runs * sweep.map_or(1, <[f64]>::len);
+    let bar = if std::io::stderr().is_terminal() && verbosity() >= Verbosity::Normal {
+        indicatif::ProgressBar::new(total_runs as u64)
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    info(format!(
+        "evaluate: {total_runs} runs of T = {} × N = {} on {} threads",
+        model.steps,
+        model.subsystems,
+        rayon::current_num_threads()
+    ));
+    if let Some(values) = sweep {
+        let result = sisfilt::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))?;
+        bar.finish_and_clear();
+        info(format!("evaluate: {:.2} s", result.total_wall_time_s));
+        for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
+            warn_left_out(e, &format!(" at p = {p}"));
+        }
+        write_json(out, &result)?;
+        return print_line(result.table().trim_end_matches('\n'));
+    }
+    let result = sisfilt::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))?;
+    bar.finish_and_clear();
+    info(format!(
+        "evaluate: {:.2} s ({})",
+        result.total_wall_time_s,
+        result
+            .filters
+            .iter()
+            .map(|f| format!("{} {:.2} s", f.name, f.wall_time_s))
+            .collect::<Vec<_>>()
+            .join(", ")
+    ));
+    warn_left_out(&result, "");
+    // The file first: a reader of the table that stops early must not cost the JSON.
+    write_json(out, &result)?;
+    print_line(result.table().trim_end_matches('\n'))
+}
+
+/// The NEES warning of docs/theory.md §11 for each filter of an evaluation.
+fn warn_left_out(result: &sisfilt::evaluate::Evaluation, context: &str) {
+    for f in &result.filters {
+        for note in &f.notes {
+            warn(format!("{}{context}: {note}", f.name));
+        }
+        if let Some(a) = f.accuracy.as_ref().filter(|a| a.nees_left_out > 0) {
+            warn(format!(
+                "NEES of {}{context}: {} of {} terms left out: error and claimed variance both below the resolution floor of f64 (docs/theory.md §11)",
+                f.name, a.nees_left_out, a.terms
+            ));
+        }
+    }
+}
+
+/// Writes the JSON of `evaluate --out`, when asked for.
+fn write_json(out: Option<Output>, value: &impl serde::Serialize) -> Result<()> {
+    if let Some(mut out) = out {
+        let name = out.name();
+        serde_json::to_writer_pretty(&mut out, value).context("writing the evaluation")?;
+        std::io::Write::write_all(&mut out, b"\n").map_err(|e| Error::io(&name, e))?;
+        out.commit()?;
+        info(format!("wrote {name}"));
+    }
+    Ok(())
+}

@@ -1,0 +1,133 @@
+//! The command line: everything that knows clap. `main.rs` parses a [`Cli`] and hands its
+//! command to [`run`]; each command turns its arguments into library calls and reports on
+//! standard error through [`sisfilt::messages`].
+//!
+//! - [`check`], [`simulate`], [`estimate`], [`evaluate`], [`plot`], [`completions`], [`man`]:
+//!   one file per command, each with its arguments (the doc comments are the `--help` text).
+//! - [`choice`]: the library's named options ([`sisfilt::choice::Choice`]) as clap values.
+
+mod check;
+mod choice;
+mod completions;
+mod estimate;
+mod evaluate;
+mod man;
+mod plot;
+mod simulate;
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+use sisfilt::error::Error;
+use sisfilt::inputs::InputStream;
+use sisfilt::io::{Output, Role};
+use sisfilt::model::Model;
+
+/// Distributed state estimation for chains of interconnected subsystems whose sensors drop
+/// measurements at random (two-step filter of Bai Li's paper, with the corrections of docs/theory.md §6).
+#[derive(Debug, Parser)]
+#[command(name = "sisfilt", version, about, long_about = None)]
+pub struct Cli {
+    /// Print no warnings or progress bars on standard error (errors are still printed).
+    #[arg(
+        long,
+        short,
+        global = true,
+        conflicts_with = "verbose",
+        display_order = 1000
+    )]
+    pub quiet: bool,
+    /// Also print progress and timings on standard error (`info: ` lines).
+    #[arg(long, short, global = true, display_order = 1000)]
+    pub verbose: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+impl Cli {
+    /// The verbosity asked for by `--quiet` / `--verbose`.
+    pub fn verbosity(&self) -> sisfilt::messages::Verbosity {
+        use sisfilt::messages::Verbosity;
+        match (self.quiet, self.verbose) {
+            (true, _) => Verbosity::Quiet,
+            (false, true) => Verbosity::Verbose,
+            (false, false) => Verbosity::Normal,
+        }
+    }
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Validate a config and print its dimensions, which parameters vary, the interconnection
+    /// system's condition estimate and the spectral radius of the lifted A_eff.
+    Check {
+        /// The TOML config.
+        config: PathBuf,
+    },
+    /// Simulate the chain with random dropouts; write truth.csv, measurements.csv, inputs.csv
+    /// (when there are inputs) and run.json into --out.
+    Simulate(simulate::SimulateArgs),
+    /// Run the filter on a measurement file and write x̂(t|t) with P(t|t) for every (t, i).
+    Estimate(estimate::EstimateArgs),
+    /// Monte Carlo comparison of the distributed filter with the paper's version, the joint
+    /// band-k filter, the optimal centralized filter, a filter that knows the dropouts and a
+    /// naive one.
+    Evaluate(evaluate::EvaluateArgs),
+    /// Draw an SVG figure from the files the other commands write.
+    #[command(subcommand)]
+    Plot(plot::PlotCommand),
+    /// Print a shell completion script to standard output, e.g.
+    /// `sisfilt completions bash > ~/.local/share/bash-completion/completions/sisfilt`.
+    Completions {
+        /// The shell.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
+    /// Print a man page (roff) to standard output, e.g. `sisfilt man | man -l -`.
+    Man {
+        /// The command whose page to print, e.g. `estimate` or `plot series` (default: the
+        /// page of `sisfilt` itself).
+        command: Vec<String>,
+    },
+}
+
+/// Runs one command.
+pub fn run(command: Command) -> Result<()> {
+    match command {
+        Command::Check { config } => check::run(&config),
+        Command::Simulate(args) => simulate::run(&args),
+        // On a worker of rayon's pool, so that the parallel loops of every step (filter,
+        // writer, readers) start without waking the pool from outside each time.
+        Command::Estimate(args) => rayon::scope(|_| estimate::run(&args)),
+        Command::Evaluate(args) => evaluate::run(&args),
+        Command::Plot(command) => plot::run(command),
+        Command::Completions { shell } => completions::run(shell),
+        Command::Man { command } => man::run(&command),
+    }
+}
+
+/// Writes `text` to standard output; a closed pipe comes back as an [`Error::Io`] of kind
+/// `BrokenPipe`, which the binary ends quietly with exit 0 (`println!` would panic instead).
+fn print_stdout(text: &[u8]) -> Result<()> {
+    let mut out = Output::create(Path::new("-"))?;
+    out.write_all(text).map_err(|e| Error::io("<stdout>", e))?;
+    out.commit()?;
+    Ok(())
+}
+
+/// Writes `text` and a line break to standard output (see [`print_stdout`]).
+fn print_line(text: &str) -> Result<()> {
+    print_stdout(format!("{text}\n").as_bytes())
+}
+
+/// The files a run of `model` reads: its config, and the inputs file the config names.
+fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
+    let mut read = vec![Role::new("the config", config)];
+    if let Some(path) = InputStream::path(model, None) {
+        read.push(Role::new("the inputs file", path));
+    }
+    read
+}
