@@ -9,7 +9,6 @@ use sha2::Digest;
 use sisfilt::accuracy::{Accuracy, AccuracyReport};
 use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
-use sisfilt::filter::joint::DEFAULT_BAND;
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
     JointOptions, SecondMoment, TwoStepOptions, check_estimates, two_step,
@@ -116,6 +115,75 @@ fn parse_max_memory(text: &str) -> Result<u64, String> {
     sisfilt::smoother::parse_bytes(text)
 }
 
+/// What `estimate` computes, with every combination of options checked: made from the
+/// arguments alone, before any file is read.
+#[derive(Debug, Clone, Copy)]
+struct Plan {
+    filter: FilterKind,
+    /// The two-step filter's options (`--paper` and the options that override it); the
+    /// dropout mode serves every filter.
+    two_step: TwoStepOptions,
+    /// The joint filter's options (`--filter joint` only).
+    joint: Option<JointOptions>,
+    rows: Rows,
+    format: Format,
+}
+
+/// Which estimates `estimate` writes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Rows {
+    /// `x̂(t|t)`, `P(t|t)`.
+    Filtered,
+    /// `x̂(t+1|t)`, `T(t+1)` on row `t`.
+    Predicted,
+    /// `x̂(t|T)`, `P(t|T)`, refused once the stored forward pass exceeds `max_memory` bytes.
+    Smoothed { max_memory: u64 },
+}
+
+impl Plan {
+    /// Checks the option combinations of `args` (docs/theory.md §13).
+    fn new(args: &EstimateArgs) -> Result<Self> {
+        let mut two_step = if args.paper {
+            TwoStepOptions::paper()
+        } else {
+            TwoStepOptions::default()
+        };
+        two_step.solver = args.solver.unwrap_or(two_step.solver);
+        two_step.second_moment = args.second_moment.unwrap_or(two_step.second_moment);
+        two_step.interconnect_from = args.interconnect_from.unwrap_or(two_step.interconnect_from);
+        two_step.dropouts = args.dropouts;
+        let joint = joint_options(args)?;
+        let rows = match (args.smooth, args.predicted, args.max_memory) {
+            (true, _, limit) => Rows::Smoothed {
+                max_memory: limit.unwrap_or(DEFAULT_MAX_MEMORY),
+            },
+            (false, _, Some(_)) => {
+                return Err(Error::Usage("--max-memory belongs to --smooth".into()).into());
+            }
+            (false, true, None) => Rows::Predicted,
+            (false, false, None) => Rows::Filtered,
+        };
+        let json_name = args
+            .out
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"));
+        let format = args
+            .format
+            .unwrap_or(if json_name { Format::Json } else { Format::Csv });
+        Ok(Self {
+            filter: args.filter,
+            two_step,
+            joint,
+            rows,
+            format,
+        })
+    }
+
+    fn dropouts(&self) -> Dropouts {
+        self.two_step.dropouts
+    }
+}
+
 /// The measurement file's layout: `t,i,y1..yq`; empty cells only in the known-dropout mode.
 fn measurement_layout(q: usize, dropouts: Dropouts) -> StepLayout {
     StepLayout {
@@ -173,24 +241,11 @@ fn sha256_hex(text: &str) -> String {
 /// `--smooth`, after the backward pass).
 pub fn run(args: &EstimateArgs) -> Result<()> {
     let started = std::time::Instant::now();
+    let plan = Plan::new(args)?;
     let (src, run_dir) = estimate_config(args)?;
     let model = Model::from_config(&src)?;
     let d = model.dims;
     let (n, big_n) = (d.n, model.subsystems);
-
-    let mut opts = if args.paper {
-        TwoStepOptions::paper()
-    } else {
-        TwoStepOptions::default()
-    };
-    opts.solver = args.solver.unwrap_or(opts.solver);
-    opts.second_moment = args.second_moment.unwrap_or(opts.second_moment);
-    opts.interconnect_from = args.interconnect_from.unwrap_or(opts.interconnect_from);
-    opts.dropouts = args.dropouts;
-    let joint = joint_options(args)?;
-    if args.max_memory.is_some() && !args.smooth {
-        return Err(Error::Usage("--max-memory belongs to --smooth".into()).into());
-    }
 
     let inputs_file = args.inputs.clone().or_else(|| {
         run_dir
@@ -224,83 +279,31 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         read.push(Role::new(what, path));
     }
     check_files(&read, &[Role::new("--out", &args.out)])?;
-    let mut inputs = InputStream::open(&model, inputs_file.as_deref())?;
-    let mut meas = open_csv(&args.meas, measurement_layout(d.q, opts.dropouts), big_n)?;
-    let mut truth = args
+    let inputs = InputStream::open(&model, inputs_file.as_deref())?;
+    let meas = open_csv(&args.meas, measurement_layout(d.q, plan.dropouts()), big_n)?;
+    let truth = args
         .truth
         .as_ref()
         .map(|p| open_csv(p, truth_layout(n), big_n))
         .transpose()?;
-    let format = args.format.unwrap_or(
-        if args
-            .out
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
-        {
-            Format::Json
-        } else {
-            Format::Csv
-        },
-    );
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;
 
-    if args.filter == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
-        warn(
-            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
-        );
-        if args.smooth {
-            warn(
-                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
-            );
-        }
-    }
-    if opts.dropouts == Dropouts::Unknown && big_n * n <= STABILITY_CHECK_MAX {
-        let rho = spectral_radius(&model, 1, POWER_STEPS)?;
-        if rho.value >= 1.0 {
-            warn(format!(
-                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
-                rho.value
-            ));
-        }
-    }
+    warn_about(&plan, &model)?;
 
-    let two_step_only = args.filter == FilterKind::Distributed;
-    let metadata = serde_json::json!({
-        "sisfilt_version": env!("CARGO_PKG_VERSION"),
-        "config": { "path": src.name, "sha256": sha256_hex(&src.text) },
-        "measurements": args.meas.display().to_string(),
-        "inputs": inputs_file.as_ref().map(|p| p.display().to_string()),
-        "options": {
-            "filter": args.filter,
-            // The two-step filter's options; the other filters ignore them (null).
-            "solver": two_step_only.then_some(opts.solver),
-            "second_moment": two_step_only.then_some(opts.second_moment),
-            "interconnect_from": two_step_only.then_some(opts.interconnect_from),
-            "dropouts": opts.dropouts,
-            "paper": args.paper,
-            "output": if args.smooth { "smoothed" } else if args.predicted { "predicted" } else { "filtered" },
-            "joint": joint.map(|j| serde_json::json!({
-                "band": j.band.min(big_n - 1),
-                "band_tol": j.band_tol,
-                "loading": j.loading_for(&model),
-                "second_moment": j.second_moment,
-            })),
-        },
-        "subsystems": big_n,
-        "n": n,
-    });
+    let metadata = metadata(args, &plan, &src, inputs_file.as_deref(), &model);
     let out_name = args.out.display().to_string();
-    if args.smooth {
-        let smoother = make_smoother(args, &model, opts, joint)?;
-        let k = joint.map_or(0, |j| j.band.min(big_n - 1));
-        let writer = EstimatesWriter::new(output, format, n, k, metadata)
+    if let Rows::Smoothed { .. } = plan.rows {
+        let smoother = make_smoother(args, &plan, &model)?;
+        let k = plan.joint.map_or(0, |j| j.band.min(big_n - 1));
+        let writer = EstimatesWriter::new(output, plan.format, n, k, metadata)
             .map_err(|e| Error::io(&out_name, e))?;
         return run_smoother(
             args,
             &model,
             smoother,
-            SmootherIo {
+            &plan,
+            FilterIo {
                 meas,
                 inputs,
                 truth,
@@ -308,18 +311,123 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
             },
         );
     }
-    let mut filter: Box<dyn ChainFilter> = match (args.filter, joint) {
+    let filter: Box<dyn ChainFilter> = match (plan.filter, plan.joint) {
         (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(&model, j)?),
         (FilterKind::Centralized, _) => Box::new(CentralizedFilter::new(
             &model,
-            opts.dropouts == Dropouts::Known,
+            plan.dropouts() == Dropouts::Known,
             args.max_lifted,
         )?),
-        _ => two_step(&model, opts)?,
+        _ => two_step(&model, plan.two_step)?,
     };
     let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
-    let writer = EstimatesWriter::new(output, format, n, cross, metadata)
+    let writer = EstimatesWriter::new(output, plan.format, n, cross, metadata)
         .map_err(|e| Error::io(&out_name, e))?;
+    run_filter(
+        args,
+        &model,
+        filter,
+        plan.rows == Rows::Predicted,
+        FilterIo {
+            meas,
+            inputs,
+            truth,
+            writer,
+        },
+        started,
+    )
+}
+
+/// The warnings a run of `plan` on `model` deserves before it starts: a distributed filter
+/// whose covariance cannot be trusted, an unstable chain.
+fn warn_about(plan: &Plan, model: &Model) -> Result<()> {
+    if plan.filter == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
+        warn(
+            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
+        );
+        if matches!(plan.rows, Rows::Smoothed { .. }) {
+            warn(
+                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
+            );
+        }
+    }
+    if plan.dropouts() == Dropouts::Unknown
+        && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
+    {
+        let rho = spectral_radius(model, 1, POWER_STEPS)?;
+        if rho.value >= 1.0 {
+            warn(format!(
+                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
+                rho.value
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The metadata at the head of an estimates JSON file.
+fn metadata(
+    args: &EstimateArgs,
+    plan: &Plan,
+    src: &ConfigSource,
+    inputs_file: Option<&std::path::Path>,
+    model: &Model,
+) -> serde_json::Value {
+    let two_step_only = plan.filter == FilterKind::Distributed;
+    let opts = plan.two_step;
+    serde_json::json!({
+        "sisfilt_version": env!("CARGO_PKG_VERSION"),
+        "config": { "path": src.name, "sha256": sha256_hex(&src.text) },
+        "measurements": args.meas.display().to_string(),
+        "inputs": inputs_file.map(|p| p.display().to_string()),
+        "options": {
+            "filter": plan.filter,
+            // The two-step filter's options; the other filters ignore them (null).
+            "solver": two_step_only.then_some(opts.solver),
+            "second_moment": two_step_only.then_some(opts.second_moment),
+            "interconnect_from": two_step_only.then_some(opts.interconnect_from),
+            "dropouts": opts.dropouts,
+            "paper": args.paper,
+            "output": match plan.rows { Rows::Smoothed { .. } => "smoothed", Rows::Predicted => "predicted", Rows::Filtered => "filtered" },
+            "joint": plan.joint.map(|j| serde_json::json!({
+                "band": j.band.min(model.subsystems - 1),
+                "band_tol": j.band_tol,
+                "loading": j.loading_for(model),
+                "second_moment": j.second_moment,
+            })),
+        },
+        "subsystems": model.subsystems,
+        "n": model.dims.n,
+    })
+}
+
+/// The files of a run: measurements, inputs, truth (with `--truth`) and the estimates.
+struct FilterIo<R: std::io::Read, T: std::io::Read> {
+    meas: StepReader<R>,
+    inputs: InputStream,
+    truth: Option<StepReader<T>>,
+    writer: EstimatesWriter,
+}
+
+/// `estimate` without `--smooth`: each step is read, filtered, handed to the writer thread
+/// and scored against the truth; `predicted` writes `x̂(t+1|t)`, `T(t+1)` on row `t`.
+fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
+    args: &EstimateArgs,
+    model: &Model,
+    mut filter: Box<dyn ChainFilter + '_>,
+    predicted: bool,
+    io: FilterIo<R, T>,
+    started: std::time::Instant,
+) -> Result<()> {
+    let FilterIo {
+        mut meas,
+        mut inputs,
+        mut truth,
+        writer,
+    } = io;
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
+    let out_name = args.out.display().to_string();
     let mut writer = BackgroundWriter::new(
         writer,
         big_n,
@@ -328,7 +436,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         (cross > 0).then_some((big_n, n, cross)),
     );
     let mut y = vec![0.0; meas.row_values()];
-    let mut u = vec![0.0; big_n * d.m];
+    let mut u = vec![0.0; big_n * model.dims.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
     let mut accuracy = Accuracy::new(n);
     // With --predicted, row t is scored against the truth at t + 1.
@@ -362,19 +470,19 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
                 filter.solver_error_estimate()
             ));
         }
-        let (x_hat, p_hat) = if args.predicted {
+        let (x_hat, p_hat) = if predicted {
             filter.predicted()
         } else {
             filter.filtered()
         };
         check_estimates(t, n, x_hat, p_hat)?;
-        let band = filter.covariance_band(args.predicted).map(|(b, _)| b);
+        let band = filter.covariance_band(predicted).map(|(b, _)| b);
         clock
             .write(|| writer.write_step(t, x_hat, p_hat, band))
             .map_err(|e| Error::io(&out_name, e))?;
         if let Some(truth) = truth.as_mut() {
             clock.read(|| read_truth_step(truth, t, &mut x_true))?;
-            let scored = match (args.predicted, t > 1) {
+            let scored = match (predicted, t > 1) {
                 (false, _) => Some((x_hat, p_hat)),
                 (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
                 (true, false) => None,
@@ -388,7 +496,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
                     );
                 }
             }
-            if args.predicted {
+            if predicted {
                 prev_x.copy_from_slice(x_hat);
                 prev_p.copy_from_slice(p_hat);
             }
@@ -424,27 +532,21 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
 /// The smoother of `--filter` (docs/theory.md §9).
 fn make_smoother<'m>(
     args: &EstimateArgs,
+    plan: &Plan,
     model: &'m Model,
-    opts: TwoStepOptions,
-    joint: Option<JointOptions>,
 ) -> Result<Box<dyn Smoother + 'm>> {
-    Ok(match (args.filter, joint) {
+    Ok(match (plan.filter, plan.joint) {
         (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
         (FilterKind::Centralized, _) => Box::new(CentralizedSmoother::new(
             model,
-            opts.dropouts == Dropouts::Known,
+            plan.dropouts() == Dropouts::Known,
             args.max_lifted,
         )?),
-        _ => Box::new(DistributedSmoother::new(model, two_step(model, opts)?)),
+        _ => Box::new(DistributedSmoother::new(
+            model,
+            two_step(model, plan.two_step)?,
+        )),
     })
-}
-
-/// The files of a smoothing run.
-struct SmootherIo<R: std::io::Read, T: std::io::Read> {
-    meas: StepReader<R>,
-    inputs: InputStream,
-    truth: Option<StepReader<T>>,
-    writer: EstimatesWriter,
 }
 
 /// `estimate --smooth`: the forward pass over the whole file (refused politely once its
@@ -453,21 +555,24 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     args: &EstimateArgs,
     model: &Model,
     mut smoother: Box<dyn Smoother + '_>,
-    io: SmootherIo<R, T>,
+    plan: &Plan,
+    io: FilterIo<R, T>,
 ) -> Result<()> {
-    let SmootherIo {
+    let FilterIo {
         mut meas,
         mut inputs,
         mut truth,
         mut writer,
     } = io;
     let (n, big_n) = (model.dims.n, model.subsystems);
-    let kind = match args.filter {
-        FilterKind::Distributed => SmootherKind::Distributed,
-        FilterKind::Centralized => SmootherKind::Centralized,
-        FilterKind::Joint => SmootherKind::Joint(args.band.unwrap_or(DEFAULT_BAND)),
+    let kind = match (plan.filter, plan.joint) {
+        (FilterKind::Joint, Some(j)) => SmootherKind::Joint(j.band),
+        (FilterKind::Centralized, _) => SmootherKind::Centralized,
+        _ => SmootherKind::Distributed,
     };
-    let limit = args.max_memory.unwrap_or(DEFAULT_MAX_MEMORY);
+    let Rows::Smoothed { max_memory: limit } = plan.rows else {
+        unreachable!("run_smoother runs only with --smooth")
+    };
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut truth_rows: Vec<Vec<f64>> = Vec::new();
