@@ -64,5 +64,6 @@ mod tests {
         names_are_the_serialized_forms::<InterconnectFrom>();
         names_are_the_serialized_forms::<Dropouts>();
         names_are_the_serialized_forms::<Format>();
+        names_are_the_serialized_forms::<crate::evaluate::Compared>();
     }
 }

@@ -9,9 +9,10 @@
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::accuracy::{Accuracy, AccuracyReport};
+use crate::choice::{Choice, Variant};
 use crate::error::{Error, Result};
 use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
@@ -25,27 +26,126 @@ use crate::smoother::{
     CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherSchedule,
 };
 
-/// The filters compared, in table order; the smoothers (docs/theory.md §9) run with `--smooth`.
-pub const FILTERS: [&str; 9] = [
-    "distributed",
-    "distributed-paper",
-    "joint",
-    "centralized",
-    "centralized-known",
-    "naive",
-    "distributed-smoother",
-    "joint-smoother",
-    "centralized-smoother",
-];
-
-/// The filter every filter's RMSE is compared with: the optimal linear estimator.
-const REFERENCE: usize = 3;
-/// The smoother every smoother's RMSE is compared with: the optimal linear smoother.
-const SMOOTHER_REFERENCE: usize = 8;
-
-fn is_smoother(name: &str) -> bool {
-    name.ends_with("-smoother")
+/// A filter or smoother that `evaluate` compares (docs/theory.md §11). The declaration order
+/// is the tables' order; the smoothers (docs/theory.md §9) run with `--smooth`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Compared {
+    Distributed,
+    DistributedPaper,
+    Joint,
+    Centralized,
+    CentralizedKnown,
+    Naive,
+    DistributedSmoother,
+    JointSmoother,
+    CentralizedSmoother,
 }
+
+impl Choice for Compared {
+    /// Each with the description that ends the table.
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Distributed,
+            name: "distributed",
+            help: "two-step filter, default options (banded, local S, filtered)",
+        },
+        Variant {
+            value: Self::DistributedPaper,
+            name: "distributed-paper",
+            help: "two-step filter as printed in the paper (--paper)",
+        },
+        Variant {
+            value: Self::Joint,
+            name: "joint",
+            help: "joint band-k filter (--filter joint): banded lifted covariance, linear in N",
+        },
+        Variant {
+            value: Self::Centralized,
+            name: "centralized",
+            help: "centralized Nahi filter on the lifted system: the optimal linear estimator",
+        },
+        Variant {
+            value: Self::CentralizedKnown,
+            name: "centralized-known",
+            help: "centralized Kalman filter that knows which measurements were lost: a lower bound",
+        },
+        Variant {
+            value: Self::Naive,
+            name: "naive",
+            help: "per-subsystem Kalman filter that treats every measurement as present",
+        },
+        Variant {
+            value: Self::DistributedSmoother,
+            name: "distributed-smoother",
+            help: "per-subsystem RTS smoother on the two-step filter (--smooth)",
+        },
+        Variant {
+            value: Self::JointSmoother,
+            name: "joint-smoother",
+            help: "information-form smoother on the joint filter (--filter joint --smooth)",
+        },
+        Variant {
+            value: Self::CentralizedSmoother,
+            name: "centralized-smoother",
+            help: "RTS smoother on the centralized filter: the optimal linear smoother",
+        },
+    ];
+}
+
+impl Compared {
+    /// Every filter and smoother, in table order.
+    pub fn all() -> impl Iterator<Item = Self> {
+        Self::VARIANTS.iter().map(|v| v.value)
+    }
+
+    /// Its line in the description that ends the table.
+    pub fn description(self) -> &'static str {
+        Self::VARIANTS
+            .iter()
+            .find(|v| v.value == self)
+            .map_or("", |v| v.help)
+    }
+
+    /// For a smoother, the filter whose estimates it smooths.
+    pub fn smooths(self) -> Option<Self> {
+        match self {
+            Self::DistributedSmoother => Some(Self::Distributed),
+            Self::JointSmoother => Some(Self::Joint),
+            Self::CentralizedSmoother => Some(Self::Centralized),
+            _ => None,
+        }
+    }
+
+    pub fn is_smoother(self) -> bool {
+        self.smooths().is_some()
+    }
+
+    /// What its RMSE is divided by in the `/ central` column: the optimal linear filter, or
+    /// for a smoother the optimal linear smoother.
+    pub fn reference(self) -> Self {
+        if self.is_smoother() {
+            Self::CentralizedSmoother
+        } else {
+            Self::Centralized
+        }
+    }
+
+    /// Its place in the tables, which indexes the per-filter figures of a run.
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// Its name, padded as the tables ask.
+impl std::fmt::Display for Compared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.pad(self.name())
+    }
+}
+
+/// The number of [`Compared`] values.
+const COMPARED: usize = Compared::VARIANTS.len();
 
 /// Settings of an evaluation.
 #[derive(Debug, Clone, Serialize)]
@@ -58,9 +158,8 @@ pub struct EvaluateOptions {
     pub max_lifted: usize,
     /// The joint filter's `--band K`.
     pub band: usize,
-    /// The filters to run (names of [`FILTERS`]); empty means all filters, and the
-    /// smoothers too with `smooth`.
-    pub filters: Vec<String>,
+    /// The filters to run; empty means all filters, and the smoothers too with `smooth`.
+    pub filters: Vec<Compared>,
     /// Also run the smoothers (docs/theory.md §9).
     pub smooth: bool,
 }
@@ -76,7 +175,7 @@ impl EvaluateOptions {
 /// The figures of one filter over all runs.
 #[derive(Debug, Clone, Serialize)]
 pub struct FilterResult {
-    pub name: &'static str,
+    pub name: Compared,
     /// What the filter is.
     pub description: &'static str,
     /// `None` when the filter ran; else why it was skipped or failed.
@@ -108,29 +207,6 @@ pub struct Evaluation {
     pub filters: Vec<FilterResult>,
     /// Time of the whole evaluation (seconds).
     pub total_wall_time_s: f64,
-}
-
-fn describe(name: &str) -> &'static str {
-    match name {
-        "distributed" => "two-step filter, default options (banded, local S, filtered)",
-        "distributed-paper" => "two-step filter as printed in the paper (--paper)",
-        "joint" => "joint band-k filter (--filter joint): banded lifted covariance, linear in N",
-        "centralized" => {
-            "centralized Nahi filter on the lifted system: the optimal linear estimator"
-        }
-        "centralized-known" => {
-            "centralized Kalman filter that knows which measurements were lost: a lower bound"
-        }
-        "naive" => "per-subsystem Kalman filter that treats every measurement as present",
-        "distributed-smoother" => "per-subsystem RTS smoother on the two-step filter (--smooth)",
-        "joint-smoother" => {
-            "information-form smoother on the joint filter (--filter joint --smooth)"
-        }
-        "centralized-smoother" => {
-            "RTS smoother on the centralized filter: the optimal linear smoother"
-        }
-        _ => "",
-    }
 }
 
 /// One simulated realisation, kept in memory for all filters.
@@ -179,7 +255,7 @@ const MAX_SCHEDULE_BYTES: usize = 1 << 30;
 struct Schedules<'m> {
     centralized: Option<CentralizedSchedule<'m>>,
     joint: Option<JointSchedule<'m>>,
-    /// Per entry of [`FILTERS`], for the smoothers: the gains and covariances of the backward
+    /// Per [`Compared::index`], for the smoothers: the gains and covariances of the backward
     /// pass.
     smoothers: Vec<Option<SmootherSchedule>>,
 }
@@ -188,10 +264,14 @@ struct Schedules<'m> {
 /// blocks of `P(t|T)` per step (for `joint`, the factor of `𝒥` with blocks `2n × 2n` and
 /// bandwidth `κ = k + 2b` with the inverses of its diagonal blocks, and `Λˢ(t+1)` with band
 /// `k`; `b` is the first step's).
-fn smoother_schedule_bytes(model: &Model, name: &str, opts: &EvaluateOptions) -> Result<f64> {
+fn smoother_schedule_bytes(
+    model: &Model,
+    smoother: Compared,
+    opts: &EvaluateOptions,
+) -> Result<f64> {
     let (n, big_n) = (model.dims.n as f64, model.subsystems as f64);
-    let per_step = match name {
-        "centralized-smoother" => (big_n * n).powi(2) + big_n * n * n,
+    let per_step = match smoother {
+        Compared::CentralizedSmoother => (big_n * n).powi(2) + big_n * n * n,
         _ => {
             let filter = JointFilter::new(model, joint_options(opts))?;
             let k = filter.band();
@@ -209,33 +289,33 @@ fn joint_options(opts: &EvaluateOptions) -> JointOptions {
     }
 }
 
+/// The filter `filter`, or for a smoother the filter it smooths (whose means it replays).
 fn make_filter<'a>(
     model: &'a Model,
-    name: &str,
+    filter: Compared,
     opts: &EvaluateOptions,
     schedules: &'a Schedules<'a>,
 ) -> Result<Box<dyn ChainFilter + 'a>> {
     let max_lifted = opts.max_lifted;
-    Ok(match name {
-        "centralized" if schedules.centralized.is_some() => Box::new(ScheduledCentralized::new(
-            schedules.centralized.as_ref().expect("checked"),
-        )),
-        "joint" => match &schedules.joint {
+    Ok(match filter.smooths().unwrap_or(filter) {
+        Compared::Centralized => match &schedules.centralized {
+            Some(s) => Box::new(ScheduledCentralized::new(s)),
+            None => Box::new(CentralizedFilter::new(model, false, max_lifted)?),
+        },
+        Compared::Joint => match &schedules.joint {
             Some(s) => Box::new(ScheduledJoint::new(s)?),
             None => Box::new(JointFilter::new(model, joint_options(opts))?),
         },
-        "distributed" => two_step(model, TwoStepOptions::default())?,
-        "distributed-paper" => two_step(model, TwoStepOptions::paper())?,
-        "centralized" => Box::new(CentralizedFilter::new(model, false, max_lifted)?),
-        "centralized-known" => Box::new(CentralizedFilter::new(model, true, max_lifted)?),
-        "naive" => two_step(
+        Compared::DistributedPaper => two_step(model, TwoStepOptions::paper())?,
+        Compared::CentralizedKnown => Box::new(CentralizedFilter::new(model, true, max_lifted)?),
+        Compared::Naive => two_step(
             model,
             TwoStepOptions {
                 dropouts: Dropouts::Known,
                 ..TwoStepOptions::default()
             },
         )?,
-        _ => unreachable!(),
+        _ => two_step(model, TwoStepOptions::default())?,
     })
 }
 
@@ -274,21 +354,21 @@ impl StepNees {
     }
 }
 
+/// The smoother `smoother` (one of the [`Compared`] smoothers).
 fn make_smoother<'a>(
     model: &'a Model,
-    name: &str,
+    smoother: Compared,
     opts: &EvaluateOptions,
 ) -> Result<Box<dyn Smoother + 'a>> {
-    Ok(match name {
-        "distributed-smoother" => Box::new(DistributedSmoother::new(
+    Ok(match smoother.smooths() {
+        Some(Compared::Joint) => Box::new(JointSmoother::new(model, joint_options(opts))?),
+        Some(Compared::Centralized) => {
+            Box::new(CentralizedSmoother::new(model, false, opts.max_lifted)?)
+        }
+        _ => Box::new(DistributedSmoother::new(
             model,
             two_step(model, TwoStepOptions::default())?,
         )),
-        "joint-smoother" => Box::new(JointSmoother::new(model, joint_options(opts))?),
-        "centralized-smoother" => {
-            Box::new(CentralizedSmoother::new(model, false, opts.max_lifted)?)
-        }
-        _ => unreachable!(),
     })
 }
 
@@ -309,8 +389,9 @@ fn run_filters(
     };
     let data = realise(model, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
     let (n, big_n) = (model.dims.n, model.subsystems);
-    let mut out = Vec::with_capacity(FILTERS.len());
-    for (k, name) in FILTERS.iter().enumerate() {
+    let mut out = Vec::with_capacity(COMPARED);
+    for name in Compared::all() {
+        let k = name.index();
         if !active[k] {
             out.push((Err(String::new()), 0.0));
             continue;
@@ -342,9 +423,7 @@ fn run_filters(
                 // The filter's means, then the stored backward gains (docs/theory.md §9).
                 let mut f = match schedule.forward {
                     Some(joint) => Box::new(JointFilter::new(model, joint)?),
-                    None => {
-                        make_filter(model, name.trim_end_matches("-smoother"), opts, schedules)?
-                    }
+                    None => make_filter(model, name, opts, schedules)?,
                 };
                 let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
                 for t in 0..data.y.len() {
@@ -358,7 +437,7 @@ fn run_filters(
                 }
                 return Ok((acc, per_step));
             }
-            if is_smoother(name) {
+            if name.is_smoother() {
                 let mut s = make_smoother(model, name, opts)?;
                 for t in 0..data.y.len() {
                     s.step(&data.y[t], &data.u[t])?;
@@ -370,7 +449,7 @@ fn run_filters(
                 return Ok((acc, per_step));
             }
             let mut f = make_filter(model, name, opts, schedules)?;
-            let ys = if *name == "centralized-known" {
+            let ys = if name == Compared::CentralizedKnown {
                 &data.y_known
             } else {
                 &data.y
@@ -425,32 +504,24 @@ pub fn evaluate(
             ),
         });
     }
-    if let Some(bad) = opts.filters.iter().find(|f| !FILTERS.contains(&f.as_str())) {
-        return Err(Error::Usage(format!(
-            "--filters: unknown filter `{bad}`; expected some of {}",
-            FILTERS.join(", ")
-        )));
-    }
-    let selected: Vec<bool> = FILTERS
-        .iter()
+    let selected: Vec<bool> = Compared::all()
         .map(|f| {
             if opts.filters.is_empty() {
-                opts.smooth || !is_smoother(f)
+                opts.smooth || !f.is_smoother()
             } else {
-                opts.filters.iter().any(|g| g == f)
+                opts.filters.contains(&f)
             }
         })
         .collect();
     // A filter that cannot be built for this model (too large, G22 singular) is skipped.
     let none = Schedules::default();
-    let mut skipped: Vec<Option<String>> = FILTERS
-        .iter()
+    let mut skipped: Vec<Option<String>> = Compared::all()
         .zip(&selected)
         .map(|(name, &chosen)| {
             if !chosen {
                 return Some("not selected".to_string());
             }
-            if is_smoother(name) {
+            if name.is_smoother() {
                 make_smoother(model, name, &opts).err()
             } else {
                 make_filter(model, name, &opts, &none).err()
@@ -466,38 +537,29 @@ pub fn evaluate(
     for (t, ut) in u.iter_mut().enumerate() {
         inputs.next(t + 1, ut)?;
     }
-    let central = FILTERS
-        .iter()
-        .position(|&f| f == "centralized")
-        .expect("listed");
-    let joint = FILTERS.iter().position(|&f| f == "joint").expect("listed");
     // A smoother replays the means of its filter, so that filter's schedule is needed too.
-    let needed = |filter: usize| {
-        let smoother = format!("{}-smoother", FILTERS[filter]);
-        active[filter]
-            || FILTERS
-                .iter()
-                .zip(&active)
-                .any(|(f, &a)| a && *f == smoother)
+    let needed = |filter: Compared| {
+        Compared::all().any(|f| active[f.index()] && f.smooths().unwrap_or(f) == filter)
     };
     let mut schedules = Schedules {
-        centralized: (needed(central)
+        centralized: (needed(Compared::Centralized)
             && CentralizedSchedule::bytes(model, model.steps) <= MAX_SCHEDULE_BYTES)
             .then(|| CentralizedSchedule::new(model, &u, opts.max_lifted))
             .transpose()?,
-        joint: (needed(joint)
+        joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
             .then(|| JointSchedule::new(model, joint_options(&opts), &u))
             .transpose()?,
         smoothers: Vec::new(),
     };
-    for (k, name) in FILTERS.iter().enumerate() {
+    for name in Compared::all() {
+        let k = name.index();
         // A smoother whose backward pass fails is left to the runs, which report the error.
         // The two-step filter's covariances depend on the data (its local moment propagates
         // the realised `B v̂`, docs/theory.md §4), so the distributed smoother runs in full every time.
         let schedule = if active[k]
-            && is_smoother(name)
-            && *name != "distributed-smoother"
+            && name.is_smoother()
+            && name != Compared::DistributedSmoother
             && smoother_schedule_bytes(model, name, &opts)? <= MAX_SCHEDULE_BYTES as f64
         {
             SmootherSchedule::new(make_smoother(model, name, &opts)?, model, &u).ok()
@@ -516,11 +578,9 @@ pub fn evaluate(
         .collect::<Result<_>>()?;
 
     let n = model.dims.n;
-    let mut sums: Vec<Accuracy> = (0..FILTERS.len()).map(|_| Accuracy::new(n)).collect();
-    let mut step_sums: Vec<StepNees> = (0..FILTERS.len())
-        .map(|_| StepNees::new(model.steps))
-        .collect();
-    let mut times = vec![0.0; FILTERS.len()];
+    let mut sums: Vec<Accuracy> = (0..COMPARED).map(|_| Accuracy::new(n)).collect();
+    let mut step_sums: Vec<StepNees> = (0..COMPARED).map(|_| StepNees::new(model.steps)).collect();
+    let mut times = [0.0; COMPARED];
     for run in &results {
         for (k, (res, time)) in run.iter().enumerate() {
             times[k] += time;
@@ -536,46 +596,37 @@ pub fn evaluate(
             }
         }
     }
-    let reports: Vec<Option<AccuracyReport>> = (0..FILTERS.len())
+    let reports: Vec<Option<AccuracyReport>> = (0..COMPARED)
         .map(|k| skipped[k].is_none().then(|| sums[k].report()))
         .collect();
-    let reference = reports[REFERENCE].as_ref().map(|r| r.rmse_overall);
-    let smoother_reference = reports[SMOOTHER_REFERENCE].as_ref().map(|r| r.rmse_overall);
-    let filters = FILTERS
-        .iter()
-        .enumerate()
-        .filter(|&(k, _)| selected[k])
-        .map(|(k, name)| FilterResult {
-            name,
-            description: describe(name),
-            skipped: skipped[k].clone(),
-            rmse_ratio: match (
-                &reports[k],
-                if is_smoother(name) {
-                    smoother_reference
+    let rmse = |f: Compared| reports[f.index()].as_ref().map(|r| r.rmse_overall);
+    let ratio = |f: Compared, to: Compared| Some(rmse(f)? / rmse(to)?);
+    let filters = Compared::all()
+        .filter(|f| selected[f.index()])
+        .map(|name| {
+            let k = name.index();
+            FilterResult {
+                name,
+                description: name.description(),
+                skipped: skipped[k].clone(),
+                rmse_ratio: ratio(name, name.reference()),
+                rmse_ratio_to_filter: name
+                    .is_smoother()
+                    .then(|| ratio(name, Compared::Centralized))
+                    .flatten(),
+                accuracy: reports[k].clone(),
+                wall_time_s: times[k],
+                nees_per_step: if skipped[k].is_none() {
+                    step_sums[k].averages()
                 } else {
-                    reference
+                    Vec::new()
                 },
-            ) {
-                (Some(r), Some(c)) => Some(r.rmse_overall / c),
-                _ => None,
-            },
-            rmse_ratio_to_filter: match (&reports[k], reference) {
-                (Some(r), Some(c)) if is_smoother(name) => Some(r.rmse_overall / c),
-                _ => None,
-            },
-            accuracy: reports[k].clone(),
-            wall_time_s: times[k],
-            nees_per_step: if skipped[k].is_none() {
-                step_sums[k].averages()
-            } else {
-                Vec::new()
-            },
-            notes: schedules
-                .smoothers
-                .get(k)
-                .and_then(Option::as_ref)
-                .map_or_else(Vec::new, |s| s.notes.clone()),
+                notes: schedules
+                    .smoothers
+                    .get(k)
+                    .and_then(Option::as_ref)
+                    .map_or_else(Vec::new, |s| s.notes.clone()),
+            }
         })
         .collect();
     Ok(Evaluation {
@@ -660,7 +711,11 @@ impl Sweep {
             self.subsystems,
             o.burn_in
         );
-        let names: Vec<&str> = self.evaluations[0].filters.iter().map(|f| f.name).collect();
+        let names: Vec<&str> = self.evaluations[0]
+            .filters
+            .iter()
+            .map(|f| f.name.name())
+            .collect();
         let widths: Vec<usize> = names.iter().map(|n| n.len().max(10) + 2).collect();
         let block = |title: &str,
                      pick: &dyn Fn(&AccuracyReport) -> Option<f64>,
@@ -801,5 +856,31 @@ fn figure(v: f64) -> String {
         format!("{v:.4}")
     } else {
         format!("{v:.3e}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_smoother_smooths_the_filter_it_is_named_after_and_is_compared_with_its_peer() {
+        for f in Compared::all() {
+            let name = f.name();
+            match f.smooths() {
+                Some(filter) => {
+                    assert_eq!(name, format!("{}-smoother", filter.name()));
+                    assert!(!filter.is_smoother());
+                    assert_eq!(f.reference(), Compared::CentralizedSmoother);
+                }
+                None => {
+                    assert!(!name.ends_with("-smoother"), "{name}");
+                    assert_eq!(f.reference(), Compared::Centralized);
+                }
+            }
+            assert!(!f.description().is_empty(), "{name}");
+            assert_eq!(Compared::all().nth(f.index()), Some(f), "{name}");
+        }
+        assert_eq!(Compared::all().count(), COMPARED);
     }
 }

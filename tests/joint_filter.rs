@@ -255,7 +255,7 @@ fn uncoupled_chain_equals_two_step_filter() {
 /// joint-filter table; the assertion bounds are those of issue 10.)
 #[test]
 fn joint_filter_matches_the_optimum_in_monte_carlo() {
-    use sisfilt::evaluate::{EvaluateOptions, evaluate};
+    use sisfilt::evaluate::{Compared, EvaluateOptions, evaluate};
     for name in ["platoon.toml", "heat_rod.toml", "paper.toml"] {
         let model = shipped_model(name);
         let opts = EvaluateOptions {
@@ -264,16 +264,24 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
             burn_in: 0,
             max_lifted: 1000,
             band: 2,
-            filters: vec!["distributed".into(), "joint".into(), "centralized".into()],
+            filters: vec![
+                Compared::Distributed,
+                Compared::Joint,
+                Compared::Centralized,
+            ],
             smooth: false,
         };
         let ev = evaluate(&model, name, opts, || {}).unwrap();
-        let get = |f: &str| {
+        let get = |f: Compared| {
             let r = ev.filters.iter().find(|r| r.name == f).unwrap();
             let a = r.accuracy.as_ref().unwrap();
             (a.rmse_overall, a.anees.unwrap_or(f64::INFINITY))
         };
-        let (joint, central, two_step) = (get("joint"), get("centralized"), get("distributed"));
+        let (joint, central, two_step) = (
+            get(Compared::Joint),
+            get(Compared::Centralized),
+            get(Compared::Distributed),
+        );
         eprintln!("{name}: two-step {two_step:?}, joint {joint:?}, centralized {central:?}");
         assert!(
             joint.0 <= 1.01 * central.0,

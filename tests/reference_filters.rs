@@ -5,6 +5,7 @@
 mod common;
 use common::{model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
+use sisfilt::choice::Choice;
 use sisfilt::evaluate::{EvaluateOptions, evaluate};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions,
@@ -319,7 +320,7 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
     let ratio = |name: &str| {
         ev.filters
             .iter()
-            .find(|f| f.name == name)
+            .find(|f| f.name.name() == name)
             .unwrap()
             .rmse_ratio
             .unwrap()

@@ -6,10 +6,12 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 
 use sisfilt::error::Error;
+use sisfilt::evaluate::Compared;
 use sisfilt::io::{Output, Role, check_files};
 use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
 
+use super::choice::choice;
 use super::{config_files, print_line};
 
 #[derive(Debug, clap::Args)]
@@ -37,8 +39,14 @@ pub struct EvaluateArgs {
     /// Run only these filters (comma-separated; default: all): distributed,
     /// distributed-paper, joint, centralized, centralized-known, naive, and the smoothers
     /// distributed-smoother, joint-smoother, centralized-smoother.
-    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
-    pub filters: Vec<String>,
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "NAMES",
+        value_parser = choice::<Compared>(),
+        hide_possible_values = true
+    )]
+    pub filters: Vec<Compared>,
     /// Also run the smoothers of docs/theory.md §9 (distributed-smoother, joint-smoother,
     /// centralized-smoother); their RMSE ratio is to the centralized smoother.
     #[arg(long)]
