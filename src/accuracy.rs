@@ -2,7 +2,7 @@
 //! NEES with its resolution floor.
 
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
-use serde::Serialize;
+use serde::{Deserialize, Deserializer, Serialize};
 
 /// Running sums over the scored `(t, i)` terms.
 #[derive(Debug, Clone)]
@@ -30,12 +30,15 @@ macro_rules! projections {
     }};
 }
 
-/// The accuracy of one run (or many), as reported.
-#[derive(Debug, Clone, Serialize)]
+/// The accuracy of one run (or many), as reported. JSON has no infinity: an RMSE that
+/// overflowed is written as `null` and read back as NaN.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct AccuracyReport {
     /// RMSE of each state element over every scored `(t, i)`.
+    #[serde(deserialize_with = "nan_for_nulls")]
     pub rmse: Vec<f64>,
     /// `sqrt(mean ‖x − x̂‖² / n)`.
+    #[serde(deserialize_with = "nan_for_null")]
     pub rmse_overall: f64,
     /// Average NEES over the resolved terms; `None` (JSON `null`) when infinite.
     pub anees: Option<f64>,
@@ -49,6 +52,17 @@ pub struct AccuracyReport {
     pub nees_left_out: u64,
     /// Terms with a resolved error against a zero claimed variance.
     pub nees_infinite: u64,
+}
+
+/// A number that JSON may hold as `null` (not finite when written): NaN.
+fn nan_for_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// Numbers that JSON may hold as `null`: NaN for each.
+fn nan_for_nulls<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+    let values = Vec::<Option<f64>>::deserialize(d)?;
+    Ok(values.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect())
 }
 
 impl Accuracy {

@@ -148,7 +148,7 @@ impl std::fmt::Display for Compared {
 const COMPARED: usize = Compared::VARIANTS.len();
 
 /// Settings of an evaluation.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct EvaluateOptions {
     pub runs: usize,
     pub seed: u64,
@@ -173,11 +173,11 @@ impl EvaluateOptions {
 }
 
 /// The figures of one filter over all runs.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FilterResult {
     pub name: Compared,
     /// What the filter is.
-    pub description: &'static str,
+    pub description: String,
     /// `None` when the filter ran; else why it was skipped or failed.
     pub skipped: Option<String>,
     pub accuracy: Option<AccuracyReport>,
@@ -196,10 +196,10 @@ pub struct FilterResult {
     pub notes: Vec<String>,
 }
 
-/// The result of an evaluation.
-#[derive(Debug, Clone, Serialize)]
+/// The result of an evaluation: the JSON of `evaluate --out`, which `plot evaluate` reads.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Evaluation {
-    pub sisfilt_version: &'static str,
+    pub sisfilt_version: String,
     pub config: String,
     pub options: EvaluateOptions,
     pub subsystems: usize,
@@ -607,7 +607,7 @@ pub fn evaluate(
             let k = name.index();
             FilterResult {
                 name,
-                description: name.description(),
+                description: name.description().to_string(),
                 skipped: skipped[k].clone(),
                 rmse_ratio: ratio(name, name.reference()),
                 rmse_ratio_to_filter: name
@@ -630,7 +630,7 @@ pub fn evaluate(
         })
         .collect();
     Ok(Evaluation {
-        sisfilt_version: env!("CARGO_PKG_VERSION"),
+        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.to_string(),
         subsystems: model.subsystems,
         steps: model.steps,
@@ -640,10 +640,11 @@ pub fn evaluate(
     })
 }
 
-/// `evaluate --sweep-p`: one evaluation per arrival probability, each on the same seeds.
-#[derive(Debug, Clone, Serialize)]
+/// `evaluate --sweep-p`: one evaluation per arrival probability, each on the same seeds (the
+/// JSON of `evaluate --sweep-p --out`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Sweep {
-    pub sisfilt_version: &'static str,
+    pub sisfilt_version: String,
     pub config: String,
     pub options: EvaluateOptions,
     pub subsystems: usize,
@@ -688,7 +689,7 @@ pub fn sweep_p(
         })
         .collect::<Result<Vec<_>>>()?;
     Ok(Sweep {
-        sisfilt_version: env!("CARGO_PKG_VERSION"),
+        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.to_string(),
         options: opts,
         subsystems: model.subsystems,

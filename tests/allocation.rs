@@ -193,9 +193,7 @@ fn steps_after_the_first_allocate_nothing() {
             });
             assert_eq!(count, 0, "reader, {threads} threads: {count} allocations");
             for format in [Format::Csv, Format::Json] {
-                let mut writer =
-                    EstimatesWriter::new(std::io::sink(), format, 2, 0, serde_json::json!({}))
-                        .unwrap();
+                let mut writer = EstimatesWriter::new(std::io::sink(), format, 2, 0, None).unwrap();
                 writer.write_step(1, &x, &p, None).unwrap();
                 let mut t = 1;
                 let count = allocations_in(|| {
@@ -208,9 +206,7 @@ fn steps_after_the_first_allocate_nothing() {
                     count, 0,
                     "writer {format:?}, {threads} threads: {count} allocations"
                 );
-                let writer =
-                    EstimatesWriter::new(std::io::sink(), format, 2, 0, serde_json::json!({}))
-                        .unwrap();
+                let writer = EstimatesWriter::new(std::io::sink(), format, 2, 0, None).unwrap();
                 let mut background = BackgroundWriter::new(writer, big_n, x.len(), p.len(), None);
                 background.write_step(1, &x, &p, None).unwrap();
                 let mut t = 1;

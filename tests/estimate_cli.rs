@@ -646,6 +646,24 @@ fn json_output_carries_the_csv_numbers_and_metadata() {
             assert_eq!(options[key].as_str(), Some(default), "options.{key}");
         }
 
+        // One library type describes the file: it reads every field back, and writes the
+        // same metadata again.
+        let typed: sisfilt::io::estimates::EstimatesDocument =
+            serde_json::from_str(&doc).expect("an EstimatesDocument");
+        assert_eq!(typed.columns, csv.header);
+        assert_eq!(typed.estimates.len(), csv.rows.len());
+        assert_eq!(typed.accuracy.is_some(), with_truth);
+        assert_eq!(typed.metadata.n, n);
+        assert_eq!(typed.metadata.config.sha256, config_sha);
+        let mut metadata = v.as_object().unwrap().clone();
+        for key in ["columns", "estimates", "accuracy"] {
+            metadata.remove(key);
+        }
+        assert_eq!(
+            serde_json::to_value(&typed.metadata).unwrap(),
+            serde_json::Value::Object(metadata)
+        );
+
         let accuracy = v.get("accuracy").expect("an `accuracy` key");
         if with_truth {
             let rmse = accuracy["rmse"].as_array().expect("accuracy.rmse");

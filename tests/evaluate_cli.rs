@@ -250,3 +250,51 @@ fn a_filter_that_breaks_down_is_named_with_its_run_and_writes_no_figures() {
         .unwrap();
     assert!(rmse.is_finite() && rmse > 0.0, "{rmse}");
 }
+
+/// The JSON of `evaluate --out` (one evaluation, or a sweep over `p`) is one library type: it
+/// reads back whole into `Evaluation` or `Sweep` and writes the same document again, the
+/// overflowed RMSE of the paper's filter on the heat rod (`null`) included.
+#[test]
+fn the_json_reads_back_into_the_library_types_without_loss() {
+    use sisfilt::evaluate::{Evaluation, Sweep};
+    let dir = tempfile::tempdir().unwrap();
+    let run = |config: &str, extra: &[&str], name: &str| -> (String, serde_json::Value) {
+        let out = dir.path().join(name);
+        Command::cargo_bin("sisfilt")
+            .unwrap()
+            .arg("evaluate")
+            .arg(configs().join(config))
+            .args(["--runs", "2", "--smooth", "--out"])
+            .arg(&out)
+            .args(extra)
+            .assert()
+            .success();
+        let text = std::fs::read_to_string(out).unwrap();
+        let value = serde_json::from_str(&text).unwrap();
+        (text, value)
+    };
+    let (text, written) = run("heat_rod.toml", &[], "single.json");
+    let overflowed = &written["filters"][1];
+    assert_eq!(overflowed["name"], "distributed-paper");
+    assert!(
+        overflowed["accuracy"]["rmse_overall"].is_null(),
+        "{overflowed}"
+    );
+    let single: Evaluation = serde_json::from_str(&text).unwrap();
+    assert_eq!(single.filters.len(), 9);
+    assert!(
+        single.filters[1]
+            .accuracy
+            .as_ref()
+            .unwrap()
+            .rmse_overall
+            .is_nan()
+    );
+    assert_eq!(serde_json::to_value(&single).unwrap(), written);
+
+    let (text, written) = run("paper.toml", &["--sweep-p", "0.5,0.9"], "sweep.json");
+    let sweep: Sweep = serde_json::from_str(&text).unwrap();
+    assert_eq!(sweep.sweep_p, [0.5, 0.9]);
+    assert_eq!(sweep.evaluations.len(), 2);
+    assert_eq!(serde_json::to_value(&sweep).unwrap(), written);
+}

@@ -15,7 +15,10 @@ use sisfilt::filter::{
 };
 use sisfilt::inputs::{InputStream, open_csv};
 use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
-use sisfilt::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
+use sisfilt::io::estimates::{
+    BackgroundWriter, ConfigRef, EstimateKind, EstimateOptions, EstimatesMetadata, EstimatesWriter,
+    Format, JointSettings,
+};
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, StepReader, check_files, folder_of};
 use sisfilt::lifted::spectral_radius;
 use sisfilt::messages::{info, warn};
@@ -125,19 +128,10 @@ struct Plan {
     two_step: TwoStepOptions,
     /// The joint filter's options (`--filter joint` only).
     joint: Option<JointOptions>,
-    rows: Rows,
+    output: EstimateKind,
+    /// The smoother stops once its stored forward pass would exceed this many bytes.
+    max_memory: u64,
     format: Format,
-}
-
-/// Which estimates `estimate` writes.
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Rows {
-    /// `x̂(t|t)`, `P(t|t)`.
-    Filtered,
-    /// `x̂(t+1|t)`, `T(t+1)` on row `t`.
-    Predicted,
-    /// `x̂(t|T)`, `P(t|T)`, refused once the stored forward pass exceeds `max_memory` bytes.
-    Smoothed { max_memory: u64 },
 }
 
 impl Plan {
@@ -153,15 +147,13 @@ impl Plan {
         two_step.interconnect_from = args.interconnect_from.unwrap_or(two_step.interconnect_from);
         two_step.dropouts = args.dropouts;
         let joint = joint_options(args)?;
-        let rows = match (args.smooth, args.predicted, args.max_memory) {
-            (true, _, limit) => Rows::Smoothed {
-                max_memory: limit.unwrap_or(DEFAULT_MAX_MEMORY),
-            },
+        let output = match (args.smooth, args.predicted, args.max_memory) {
+            (true, _, _) => EstimateKind::Smoothed,
             (false, _, Some(_)) => {
                 return Err(Error::Usage("--max-memory belongs to --smooth".into()).into());
             }
-            (false, true, None) => Rows::Predicted,
-            (false, false, None) => Rows::Filtered,
+            (false, true, None) => EstimateKind::Predicted,
+            (false, false, None) => EstimateKind::Filtered,
         };
         let json_name = args
             .out
@@ -174,7 +166,8 @@ impl Plan {
             filter: args.filter,
             two_step,
             joint,
-            rows,
+            output,
+            max_memory: args.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
             format,
         })
     }
@@ -293,10 +286,10 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
 
     let metadata = metadata(args, &plan, &src, inputs_file.as_deref(), &model);
     let out_name = args.out.display().to_string();
-    if let Rows::Smoothed { .. } = plan.rows {
+    if plan.output == EstimateKind::Smoothed {
         let smoother = make_smoother(args, &plan, &model)?;
         let k = plan.joint.map_or(0, |j| j.band.min(big_n - 1));
-        let writer = EstimatesWriter::new(output, plan.format, n, k, metadata)
+        let writer = EstimatesWriter::new(output, plan.format, n, k, Some(&metadata))
             .map_err(|e| Error::io(&out_name, e))?;
         return run_smoother(
             args,
@@ -321,13 +314,13 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         _ => two_step(&model, plan.two_step)?,
     };
     let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
-    let writer = EstimatesWriter::new(output, plan.format, n, cross, metadata)
+    let writer = EstimatesWriter::new(output, plan.format, n, cross, Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?;
     run_filter(
         args,
         &model,
         filter,
-        plan.rows == Rows::Predicted,
+        plan.output == EstimateKind::Predicted,
         FilterIo {
             meas,
             inputs,
@@ -345,7 +338,7 @@ fn warn_about(plan: &Plan, model: &Model) -> Result<()> {
         warn(
             "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
         );
-        if matches!(plan.rows, Rows::Smoothed { .. }) {
+        if plan.output == EstimateKind::Smoothed {
             warn(
                 "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
             );
@@ -372,33 +365,35 @@ fn metadata(
     src: &ConfigSource,
     inputs_file: Option<&std::path::Path>,
     model: &Model,
-) -> serde_json::Value {
-    let two_step_only = plan.filter == FilterKind::Distributed;
-    let opts = plan.two_step;
-    serde_json::json!({
-        "sisfilt_version": env!("CARGO_PKG_VERSION"),
-        "config": { "path": src.name, "sha256": sha256_hex(&src.text) },
-        "measurements": args.meas.display().to_string(),
-        "inputs": inputs_file.map(|p| p.display().to_string()),
-        "options": {
-            "filter": plan.filter,
-            // The two-step filter's options; the other filters ignore them (null).
-            "solver": two_step_only.then_some(opts.solver),
-            "second_moment": two_step_only.then_some(opts.second_moment),
-            "interconnect_from": two_step_only.then_some(opts.interconnect_from),
-            "dropouts": opts.dropouts,
-            "paper": args.paper,
-            "output": match plan.rows { Rows::Smoothed { .. } => "smoothed", Rows::Predicted => "predicted", Rows::Filtered => "filtered" },
-            "joint": plan.joint.map(|j| serde_json::json!({
-                "band": j.band.min(model.subsystems - 1),
-                "band_tol": j.band_tol,
-                "loading": j.loading_for(model),
-                "second_moment": j.second_moment,
-            })),
+) -> EstimatesMetadata {
+    // The two-step filter's options; the other filters ignore them.
+    let two_step = (plan.filter == FilterKind::Distributed).then_some(plan.two_step);
+    EstimatesMetadata {
+        config: ConfigRef {
+            path: src.name.clone(),
+            sha256: sha256_hex(&src.text),
         },
-        "subsystems": model.subsystems,
-        "n": model.dims.n,
-    })
+        inputs: inputs_file.map(|p| p.display().to_string()),
+        measurements: args.meas.display().to_string(),
+        n: model.dims.n,
+        options: EstimateOptions {
+            dropouts: plan.dropouts(),
+            filter: plan.filter,
+            interconnect_from: two_step.map(|o| o.interconnect_from),
+            joint: plan.joint.map(|j| JointSettings {
+                band: j.band.min(model.subsystems - 1),
+                band_tol: j.band_tol,
+                loading: j.loading_for(model),
+                second_moment: j.second_moment,
+            }),
+            output: plan.output,
+            paper: args.paper,
+            second_moment: two_step.map(|o| o.second_moment),
+            solver: two_step.map(|o| o.solver),
+        },
+        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
+        subsystems: model.subsystems,
+    }
 }
 
 /// The files of a run: measurements, inputs, truth (with `--truth`) and the estimates.
@@ -570,9 +565,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         (FilterKind::Centralized, _) => SmootherKind::Centralized,
         _ => SmootherKind::Distributed,
     };
-    let Rows::Smoothed { max_memory: limit } = plan.rows else {
-        unreachable!("run_smoother runs only with --smooth")
-    };
+    let limit = plan.max_memory;
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut truth_rows: Vec<Vec<f64>> = Vec::new();

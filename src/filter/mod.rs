@@ -8,7 +8,7 @@ pub mod kernel;
 pub mod nahi;
 pub mod two_step;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::band::SymBand;
 use crate::choice::{Choice, Variant};
@@ -50,7 +50,7 @@ pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
 }
 
 /// The filters `estimate` can run (the meaning of each in [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum FilterKind {
     Distributed,
@@ -80,7 +80,7 @@ impl Choice for FilterKind {
 
 /// What the filter uses for the raw second moment `S = E[x xᵀ]` in the Nahi innovation
 /// covariance (docs/theory.md §4; the meaning of each in [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SecondMoment {
     Local,
@@ -116,7 +116,7 @@ impl Choice for SecondMoment {
 
 /// Which estimate of `x(t, ·)` feeds step 1 (docs/theory.md §4; the meaning of each in
 /// [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum InterconnectFrom {
     Filtered,
@@ -140,7 +140,7 @@ impl Choice for InterconnectFrom {
 
 /// Whether the filter knows which measurements were lost (docs/theory.md §1; the meaning of
 /// each in [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dropouts {
     Unknown,

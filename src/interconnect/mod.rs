@@ -24,7 +24,7 @@ use crate::error::Result;
 use crate::model::Model;
 
 /// Which step-1 solver to use (the meaning of each in [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SolverKind {
     Banded,

@@ -6,7 +6,7 @@
 
 use std::io::Write;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::accuracy::AccuracyReport;
 use crate::band::SymBand;
@@ -14,6 +14,8 @@ use crate::error::{Error, Result};
 use rayon::prelude::*;
 
 use crate::choice::{Choice, Variant};
+use crate::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment};
+use crate::interconnect::SolverKind;
 use crate::io::Output;
 use crate::io::csv_out::NumberFormat;
 
@@ -38,6 +40,79 @@ impl Choice for Format {
             help: "",
         },
     ];
+}
+
+/// Which estimates a file holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EstimateKind {
+    /// `x̂(t|t)`, `P(t|t)`.
+    Filtered,
+    /// `x̂(t+1|t)`, `T(t+1)` on row `t`.
+    Predicted,
+    /// `x̂(t|T)`, `P(t|T)`.
+    Smoothed,
+}
+
+/// The metadata that opens an estimates JSON file (docs/theory.md §13): written by
+/// `estimate`, read back by `plot`. Fields are declared in the order they are written.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EstimatesMetadata {
+    pub config: ConfigRef,
+    /// The inputs file read, if any.
+    pub inputs: Option<String>,
+    /// The measurement file.
+    pub measurements: String,
+    /// State dimension.
+    pub n: usize,
+    pub options: EstimateOptions,
+    pub sisfilt_version: String,
+    /// Chain length `N`.
+    pub subsystems: usize,
+}
+
+/// The config a run used: its name and the SHA-256 of its text.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ConfigRef {
+    pub path: String,
+    pub sha256: String,
+}
+
+/// The options of an `estimate` run.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EstimateOptions {
+    pub dropouts: Dropouts,
+    pub filter: FilterKind,
+    /// The two-step filter's options (`null` for the other filters, which ignore them).
+    pub interconnect_from: Option<InterconnectFrom>,
+    /// The joint filter's options (`--filter joint` only).
+    pub joint: Option<JointSettings>,
+    pub output: EstimateKind,
+    /// `--paper`: the paper's two-step filter.
+    pub paper: bool,
+    pub second_moment: Option<SecondMoment>,
+    pub solver: Option<SolverKind>,
+}
+
+/// The joint filter's options as run: the band `k` (at most `N − 1`), the tolerance of
+/// `A_eff`'s band, the diagonal loading and the second moment.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct JointSettings {
+    pub band: usize,
+    pub band_tol: f64,
+    pub loading: f64,
+    pub second_moment: SecondMoment,
+}
+
+/// A whole estimates JSON file: the metadata, the columns, the rows (`null` for a missing
+/// cross-covariance) and the accuracy against the truth, if scored.
+#[derive(Debug, Deserialize)]
+pub struct EstimatesDocument {
+    #[serde(flatten)]
+    pub metadata: EstimatesMetadata,
+    pub columns: Vec<String>,
+    pub estimates: Vec<Vec<Option<f64>>>,
+    pub accuracy: Option<AccuracyReport>,
 }
 
 /// The column names of an estimates file with state dimension `n`.
@@ -89,7 +164,7 @@ pub struct EstimatesWriter<W: Write = Output> {
 }
 
 impl<W: Write> EstimatesWriter<W> {
-    /// Starts the output: the CSV header, or for JSON `metadata` (an object) opening the
+    /// Starts the output: the CSV header, or for JSON the metadata (when given) opening the
     /// document, with `cross` cross-covariance blocks per row (see
     /// [`cross_covariance_header`]).
     pub fn new(
@@ -97,7 +172,7 @@ impl<W: Write> EstimatesWriter<W> {
         format: Format,
         n: usize,
         cross: usize,
-        metadata: serde_json::Value,
+        metadata: Option<&EstimatesMetadata>,
     ) -> std::io::Result<Self> {
         let mut header = estimates_header(n);
         let cross = if format == Format::Json { cross } else { 0 };
@@ -108,7 +183,10 @@ impl<W: Write> EstimatesWriter<W> {
                 out.write_all(b"\n")?;
             }
             Format::Json => {
-                let mut text = serde_json::to_string(&metadata).expect("metadata serialises");
+                let mut text = match metadata {
+                    Some(m) => serde_json::to_string(m).map_err(std::io::Error::other)?,
+                    None => "{}".into(),
+                };
                 text.pop(); // reopen the object
                 if text.len() > 1 {
                     text.push(',');
@@ -412,10 +490,8 @@ mod tests {
         for (n, rows, steps) in [(2, 3, 2000), (1, 5000, 3), (3, 700, 20)] {
             let x: Vec<f64> = (0..rows * n).map(|k| (k as f64 * 0.3).cos()).collect();
             let p: Vec<f64> = (0..rows * n * n).map(|k| k as f64 / 9.0).collect();
-            let mut direct =
-                EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, serde_json::json!({})).unwrap();
-            let writer =
-                EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, serde_json::json!({})).unwrap();
+            let mut direct = EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, None).unwrap();
+            let writer = EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, None).unwrap();
             let mut background = BackgroundWriter::new(writer, rows, x.len(), p.len(), None);
             for t in 1..=steps {
                 direct.write_step(t, &x, &p, None).unwrap();
@@ -459,9 +535,7 @@ mod tests {
                     .build()
                     .unwrap();
                 let bytes = pool.install(|| {
-                    let mut w =
-                        EstimatesWriter::new(Vec::new(), format, n, 0, serde_json::json!({}))
-                            .unwrap();
+                    let mut w = EstimatesWriter::new(Vec::new(), format, n, 0, None).unwrap();
                     w.write_step(1, &x, &p, None).unwrap();
                     w.write_step(2, &x, &p, None).unwrap();
                     w.finish(None).unwrap()

@@ -7,11 +7,9 @@ use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::Path;
 
-use serde::Deserialize;
-
 use crate::error::{Error, Result};
 use crate::io::StepReader;
-use crate::io::estimates::estimates_header;
+use crate::io::estimates::{EstimatesDocument, estimates_header};
 
 /// A file's name as used in messages.
 fn display_name(path: &Path) -> String {
@@ -132,13 +130,6 @@ impl MeasurementFile {
     }
 }
 
-/// The JSON document of `estimate --format json`, as far as the figures need it.
-#[derive(Deserialize)]
-struct EstimatesJson {
-    columns: Vec<String>,
-    estimates: Vec<Vec<Option<f64>>>,
-}
-
 enum EstimatesSource {
     Csv(Box<StepReader<Box<dyn Read>>>),
     Json {
@@ -180,12 +171,12 @@ impl EstimatesFile {
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("json"))
         {
-            let doc: EstimatesJson =
+            let doc: EstimatesDocument =
                 serde_json::from_reader(open(path)?).map_err(|e| Error::Csv {
                     file: name.clone(),
                     line: e.line() as u64,
                     msg: format!(
-                        "not the JSON of `sisfilt estimate --format json` (expected `columns` and `estimates`): {e}"
+                        "not the JSON of `sisfilt estimate --format json` (expected its metadata, `columns` and `estimates`): {e}"
                     ),
                 })?;
             let n = estimates_n(doc.columns.len())

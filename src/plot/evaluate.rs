@@ -16,69 +16,45 @@ use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use serde::Deserialize;
+use serde::de::IgnoredAny;
 
 use super::{
     Area, CAPTION_SIZE, DESC_SIZE, GREY, GRID, LABEL_SIZE, PALETTE, Swatch, TITLE_SIZE, WIDTH,
     commit_svg, decade_range, draw_centered, draw_legend, fmt_tick, font, header_height,
     legend_lines, log_axis, open_output, padded,
 };
+use crate::accuracy::AccuracyReport;
+use crate::choice::Choice;
 use crate::error::Error;
+use crate::evaluate::{EvaluateOptions, Evaluation, FilterResult, Sweep};
 use crate::io::Role;
 
-/// The accuracy figures of one filter, as `evaluate` writes them (infinite values are `null`).
-#[derive(Debug, Deserialize)]
-struct AccuracyDoc {
-    #[serde(default)]
-    rmse: Vec<Option<f64>>,
-    rmse_overall: Option<f64>,
-    anees: Option<f64>,
-    #[serde(default)]
-    anees_band: Option<[Option<f64>; 2]>,
-    /// Tolerated here as well as beside `accuracy`.
-    #[serde(default)]
-    nees_per_step: Option<Vec<Option<f64>>>,
+/// The JSON of `evaluate --out`: one evaluation, or a sweep over `p`.
+#[derive(Debug)]
+enum EvaluationFile {
+    Single(Evaluation),
+    Sweep(Sweep),
 }
 
-#[derive(Debug, Deserialize)]
-struct FilterDoc {
-    name: String,
-    skipped: Option<String>,
-    accuracy: Option<AccuracyDoc>,
-    /// Average NEES at each `t` (`t = 1..T`), when `evaluate` provides it.
-    #[serde(default)]
-    nees_per_step: Option<Vec<Option<f64>>>,
-}
+impl EvaluationFile {
+    fn config(&self) -> &str {
+        match self {
+            Self::Single(e) => &e.config,
+            Self::Sweep(s) => &s.config,
+        }
+    }
 
-impl FilterDoc {
-    fn nees_per_step(&self) -> Option<&[Option<f64>]> {
-        self.nees_per_step
-            .as_deref()
-            .or_else(|| self.accuracy.as_ref()?.nees_per_step.as_deref())
-            .filter(|v| !v.is_empty())
+    fn options(&self) -> &EvaluateOptions {
+        match self {
+            Self::Single(e) => &e.options,
+            Self::Sweep(s) => &s.options,
+        }
     }
 }
 
-/// One evaluation (`evaluate --out`), or a sweep (`evaluate --sweep-p --out`).
-#[derive(Debug, Deserialize)]
-struct EvaluationDoc {
-    #[serde(default)]
-    config: String,
-    #[serde(default)]
-    options: Option<OptionsDoc>,
-    #[serde(default)]
-    filters: Option<Vec<FilterDoc>>,
-    /// Present in a sweep: the arrival probabilities, one evaluation each.
-    #[serde(default)]
-    sweep_p: Option<Vec<f64>>,
-    #[serde(default)]
-    evaluations: Vec<EvaluationDoc>,
-}
-
-#[derive(Debug, Deserialize)]
-struct OptionsDoc {
-    runs: usize,
-    #[serde(default)]
-    burn_in: usize,
+/// The average NEES of `f` at each `t = 1..T`, when the evaluation scored any step.
+fn nees_per_step(f: &FilterResult) -> Option<&[Option<f64>]> {
+    Some(f.nees_per_step.as_slice()).filter(|v| !v.is_empty())
 }
 
 /// `sisfilt plot evaluate`: the figure of the JSON `input` (written by `evaluate --out`)
@@ -90,31 +66,42 @@ pub fn run(input: &Path, out: &Path) -> Result<()> {
     commit_svg(out, &svg)
 }
 
-fn read(path: &Path) -> Result<EvaluationDoc> {
+fn read(path: &Path) -> Result<EvaluationFile> {
     let name = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let doc: EvaluationDoc = serde_json::from_str(&text).map_err(|e| Error::Csv {
-        file: name.clone(),
-        line: e.line() as u64,
-        msg: format!("not the JSON of `sisfilt evaluate --out`: {e}"),
-    })?;
-    let not_eval = |what: &str| Error::File {
+    let not_eval = |what: String| Error::File {
         file: name.clone(),
         msg: format!("not the JSON of `sisfilt evaluate --out`: {what}"),
     };
-    match (&doc.sweep_p, &doc.filters) {
-        (Some(p), _) => {
-            if p.len() != doc.evaluations.len() || p.is_empty() {
-                return Err(not_eval("`sweep_p` and `evaluations` differ in length").into());
-            }
-            if doc.evaluations.iter().any(|e| e.filters.is_none()) {
-                return Err(not_eval("an evaluation of the sweep has no `filters`").into());
-            }
-        }
-        (None, Some(f)) if !f.is_empty() => {}
-        _ => return Err(not_eval("it has neither `filters` nor `sweep_p`").into()),
+    let syntax = |e: serde_json::Error| Error::Csv {
+        file: name.clone(),
+        line: e.line() as u64,
+        msg: format!("not the JSON of `sisfilt evaluate --out`: {e}"),
+    };
+    /// Only whether the document is a sweep.
+    #[derive(Deserialize)]
+    struct Kind {
+        sweep_p: Option<IgnoredAny>,
+        filters: Option<IgnoredAny>,
     }
-    Ok(doc)
+    let kind: Kind = serde_json::from_str(&text).map_err(syntax)?;
+    match (kind.sweep_p, kind.filters) {
+        (Some(_), _) => {
+            let sweep: Sweep = serde_json::from_str(&text).map_err(syntax)?;
+            if sweep.sweep_p.len() != sweep.evaluations.len() || sweep.sweep_p.is_empty() {
+                return Err(not_eval("`sweep_p` and `evaluations` differ in length".into()).into());
+            }
+            Ok(EvaluationFile::Sweep(sweep))
+        }
+        (None, Some(_)) => {
+            let single: Evaluation = serde_json::from_str(&text).map_err(syntax)?;
+            if single.filters.is_empty() {
+                return Err(not_eval("its `filters` are empty".into()).into());
+            }
+            Ok(EvaluationFile::Single(single))
+        }
+        (None, None) => Err(not_eval("it has neither `filters` nor `sweep_p`".into()).into()),
+    }
 }
 
 fn file_name(path: &Path) -> String {
@@ -125,20 +112,19 @@ fn file_name(path: &Path) -> String {
 }
 
 /// Renders the figure of an evaluation or a sweep.
-fn render(doc: &EvaluationDoc, input: &Path) -> Result<String> {
-    match &doc.sweep_p {
-        Some(p) => render_sweep(doc, p, input),
-        None => render_single(doc, input),
+fn render(doc: &EvaluationFile, input: &Path) -> Result<String> {
+    match doc {
+        EvaluationFile::Sweep(sweep) => render_sweep(doc, sweep, input),
+        EvaluationFile::Single(single) => render_single(doc, single, input),
     }
 }
 
-fn subtitle(doc: &EvaluationDoc, input: &Path) -> String {
-    let mut s = format!("{} ({})", doc.config, file_name(input));
-    if let Some(o) = &doc.options {
-        s += &format!("; {} Monte Carlo runs", o.runs);
-        if o.burn_in > 0 {
-            s += &format!(", steps t > {} scored", o.burn_in);
-        }
+fn subtitle(doc: &EvaluationFile, input: &Path) -> String {
+    let mut s = format!("{} ({})", doc.config(), file_name(input));
+    let o = doc.options();
+    s += &format!("; {} Monte Carlo runs", o.runs);
+    if o.burn_in > 0 {
+        s += &format!(", steps t > {} scored", o.burn_in);
     }
     s
 }
@@ -147,13 +133,13 @@ const TITLE_HEIGHT: u32 = 64;
 /// Left margin holding the filter names.
 const NAMES_WIDTH: u32 = 170;
 
-fn finite(v: Option<f64>) -> Option<f64> {
-    v.filter(|x| x.is_finite())
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
 }
 
 /// Why a filter has no figure: its skip note (without the config's name, which the subtitle
 /// gives), or that it overflowed.
-fn why_missing(f: &FilterDoc, config: &str) -> String {
+fn why_missing(f: &FilterResult, config: &str) -> String {
     match &f.skipped {
         Some(why) => {
             let why = why.replace('\n', " ");
@@ -172,8 +158,8 @@ fn why_missing(f: &FilterDoc, config: &str) -> String {
     }
 }
 
-fn render_single(doc: &EvaluationDoc, input: &Path) -> Result<String> {
-    let filters = doc.filters.as_deref().unwrap_or_default();
+fn render_single(doc: &EvaluationFile, single: &Evaluation, input: &Path) -> Result<String> {
+    let filters = single.filters.as_slice();
     let n = filters
         .iter()
         .filter_map(|f| f.accuracy.as_ref())
@@ -183,7 +169,7 @@ fn render_single(doc: &EvaluationDoc, input: &Path) -> Result<String> {
     let group = 14 * (n as u32 + 1) + 18;
     let rmse_height = header_height(1) + 60 + group * filters.len() as u32;
     let anees_height = header_height(2) + 60 + 34 * filters.len() as u32;
-    let per_step = filters.iter().any(|f| f.nees_per_step().is_some());
+    let per_step = filters.iter().any(|f| nees_per_step(f).is_some());
     let per_step_height = if per_step { 380 } else { 0 };
     let height = TITLE_HEIGHT + rmse_height + anees_height + per_step_height;
     let mut svg = String::new();
@@ -195,8 +181,8 @@ fn render_single(doc: &EvaluationDoc, input: &Path) -> Result<String> {
         draw_centered(&title, &subtitle(doc, input), 38, LABEL_SIZE)?;
         let (rmse_area, rest) = rest.split_vertically(rmse_height);
         let (anees_area, step_area) = rest.split_vertically(anees_height);
-        rmse_panel(&rmse_area, filters, n, &doc.config)?;
-        anees_panel(&anees_area, filters, &doc.config)?;
+        rmse_panel(&rmse_area, filters, n, &single.config)?;
+        anees_panel(&anees_area, filters, &single.config)?;
         if per_step {
             nees_per_step_panel(&step_area, filters)?;
         }
@@ -245,7 +231,7 @@ where
 }
 
 /// Horizontal grouped bars: per filter, the overall RMSE and the RMSE of each state element.
-fn rmse_panel(area: &Area, filters: &[FilterDoc], n: usize, config: &str) -> Result<()> {
+fn rmse_panel(area: &Area, filters: &[FilterResult], n: usize, config: &str) -> Result<()> {
     let values: Vec<f64> = filters
         .iter()
         .filter_map(|f| f.accuracy.as_ref())
@@ -294,7 +280,7 @@ fn bar_chart<'a, 'b, X: AsRangedCoord<Value = f64>>(
 
 /// The RMSE bars of the filters.
 struct Bars<'a> {
-    filters: &'a [FilterDoc],
+    filters: &'a [FilterResult],
     n: usize,
     config: &'a str,
 }
@@ -330,7 +316,14 @@ impl Bars<'_> {
             // The first filter on top.
             let centre = (rows - row) as f64 - 0.5;
             let top = (rows - row) as f64 - 0.65 * bar;
-            text_at(&mut ch, (base, centre), -10, HPos::Right, &f.name, BLACK)?;
+            text_at(
+                &mut ch,
+                (base, centre),
+                -10,
+                HPos::Right,
+                f.name.name(),
+                BLACK,
+            )?;
             let Some(a) = &f.accuracy else {
                 text_at(
                     &mut ch,
@@ -396,14 +389,12 @@ fn fmt_value(v: f64) -> String {
 
 /// The ANEES of each filter as a dot, with the 95 % band of a consistent filter and the line
 /// ANEES = 1: on a log scale when the values span a decade or more, else linear.
-fn anees_panel(area: &Area, filters: &[FilterDoc], config: &str) -> Result<()> {
+fn anees_panel(area: &Area, filters: &[FilterResult], config: &str) -> Result<()> {
     let mut values: Vec<f64> = vec![1.0];
     for f in filters {
         if let Some(a) = &f.accuracy {
-            values.extend(finite(a.anees));
-            if let Some([lo, hi]) = a.anees_band {
-                values.extend(finite(lo).into_iter().chain(finite(hi)));
-            }
+            values.extend(a.anees.and_then(finite));
+            values.extend(a.anees_band.into_iter().filter_map(finite));
         }
     }
     let legend = [
@@ -445,7 +436,7 @@ fn anees_panel(area: &Area, filters: &[FilterDoc], config: &str) -> Result<()> {
 
 /// The ANEES dots of the filters.
 struct Dots<'a> {
-    filters: &'a [FilterDoc],
+    filters: &'a [FilterResult],
     config: &'a str,
 }
 
@@ -475,7 +466,7 @@ impl Dots<'_> {
         for (row, f) in self.filters.iter().enumerate() {
             let y = (rows - row) as f64 - 0.5;
             let color = PALETTE[row % PALETTE.len()];
-            text_at(&mut ch, (lo, y), -10, HPos::Right, &f.name, BLACK)?;
+            text_at(&mut ch, (lo, y), -10, HPos::Right, f.name.name(), BLACK)?;
             let Some(a) = &f.accuracy else {
                 text_at(
                     &mut ch,
@@ -487,13 +478,13 @@ impl Dots<'_> {
                 )?;
                 continue;
             };
-            if let Some([Some(b0), Some(b1)]) = a.anees_band {
+            if let [Some(b0), Some(b1)] = a.anees_band.map(finite) {
                 ch.draw_series(std::iter::once(Rectangle::new(
                     [(b0.max(lo), y - 0.3), (b1.min(hi), y + 0.3)],
                     GREY.mix(0.35).filled(),
                 )))?;
             }
-            match finite(a.anees) {
+            match a.anees.and_then(finite) {
                 Some(v) => {
                     ch.draw_series(std::iter::once(Circle::new((v, y), 6, color.filled())))?;
                     text_at(&mut ch, (v, y), 10, HPos::Left, &fmt_value(v), BLACK)?;
@@ -513,24 +504,27 @@ impl Dots<'_> {
 }
 
 /// The average NEES against time, one curve per filter, on a log scale.
-fn nees_per_step_panel(area: &Area, filters: &[FilterDoc]) -> Result<()> {
+fn nees_per_step_panel(area: &Area, filters: &[FilterResult]) -> Result<()> {
     let steps = filters
         .iter()
-        .filter_map(|f| f.nees_per_step())
+        .filter_map(nees_per_step)
         .map(<[Option<f64>]>::len)
         .max()
         .unwrap_or(1);
     let values = filters
         .iter()
-        .filter_map(|f| f.nees_per_step())
-        .flat_map(|v| v.iter().copied().filter_map(finite))
+        .filter_map(nees_per_step)
+        .flat_map(|v| v.iter().copied().flatten().filter_map(finite))
         .chain([1.0]);
     let y = decade_range(values);
     let mut legend: Vec<(Swatch, String)> = filters
         .iter()
         .enumerate()
-        .filter(|(_, f)| f.nees_per_step().is_some())
-        .map(|(row, f)| (Swatch::Line(PALETTE[row % PALETTE.len()]), f.name.clone()))
+        .filter(|(_, f)| nees_per_step(f).is_some())
+        .map(|(row, f)| {
+            let color = PALETTE[row % PALETTE.len()];
+            (Swatch::Line(color), f.name.name().to_string())
+        })
         .collect();
     legend.push((Swatch::Line(BLACK), "1 = honest covariance".into()));
     let mut ch = ChartBuilder::on(area)
@@ -556,13 +550,13 @@ fn nees_per_step_panel(area: &Area, filters: &[FilterDoc]) -> Result<()> {
         BLACK.stroke_width(1),
     )))?;
     for (row, f) in filters.iter().enumerate() {
-        let Some(v) = f.nees_per_step() else { continue };
+        let Some(v) = nees_per_step(f) else { continue };
         let color = PALETTE[row % PALETTE.len()];
         // A gap in the curve where the NEES is undefined (null) or not positive.
         let mut segment: Vec<(f64, f64)> = Vec::new();
         let mut segments = Vec::new();
         for (j, x) in v.iter().enumerate() {
-            match finite(*x).filter(|x| *x > 0.0) {
+            match x.and_then(finite).filter(|x| *x > 0.0) {
                 Some(x) => segment.push(((j + 1) as f64, x)),
                 None if !segment.is_empty() => segments.push(std::mem::take(&mut segment)),
                 None => {}
@@ -583,29 +577,26 @@ fn nees_per_step_panel(area: &Area, filters: &[FilterDoc]) -> Result<()> {
 }
 
 /// RMSE and ANEES against `p`, one curve per filter.
-fn render_sweep(doc: &EvaluationDoc, p: &[f64], input: &Path) -> Result<String> {
+fn render_sweep(doc: &EvaluationFile, sweep: &Sweep, input: &Path) -> Result<String> {
+    let p = &sweep.sweep_p;
     // Filters in the order of the first evaluation.
-    let names: Vec<&str> = doc.evaluations[0]
+    let names: Vec<&str> = sweep.evaluations[0]
         .filters
-        .as_deref()
-        .unwrap_or_default()
         .iter()
-        .map(|f| f.name.as_str())
+        .map(|f| f.name.name())
         .collect();
-    let figure = |e: &EvaluationDoc, name: &str, pick: &dyn Fn(&AccuracyDoc) -> Option<f64>| {
+    let figure = |e: &Evaluation, name: &str, pick: &dyn Fn(&AccuracyReport) -> Option<f64>| {
         e.filters
-            .as_deref()
-            .unwrap_or_default()
             .iter()
-            .find(|f| f.name == name)
+            .find(|f| f.name.name() == name)
             .and_then(|f| f.accuracy.as_ref())
             .and_then(pick)
-            .and_then(|v| finite(Some(v)))
+            .and_then(finite)
     };
-    let curve = |name: &str, pick: &dyn Fn(&AccuracyDoc) -> Option<f64>| -> Vec<(f64, f64)> {
+    let curve = |name: &str, pick: &dyn Fn(&AccuracyReport) -> Option<f64>| -> Vec<(f64, f64)> {
         let mut pts: Vec<(f64, f64)> = p
             .iter()
-            .zip(&doc.evaluations)
+            .zip(&sweep.evaluations)
             .filter_map(|(&p, e)| figure(e, name, pick).map(|v| (p, v)))
             .collect();
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -613,7 +604,7 @@ fn render_sweep(doc: &EvaluationDoc, p: &[f64], input: &Path) -> Result<String> 
     };
     let rmse: Vec<Vec<(f64, f64)>> = names
         .iter()
-        .map(|n| curve(n, &|a| a.rmse_overall))
+        .map(|n| curve(n, &|a| Some(a.rmse_overall)))
         .collect();
     let anees: Vec<Vec<(f64, f64)>> = names.iter().map(|n| curve(n, &|a| a.anees)).collect();
     let panel = 420;
