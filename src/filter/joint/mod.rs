@@ -15,6 +15,10 @@
 //! P⁻(t+1) = band_k(A_eff P̃⁺ A_effᵀ) + blkdiag(Q)                 b = half-width of A_eff
 //! ```
 
+mod schedule;
+
+pub use schedule::{JointSchedule, ScheduledJoint};
+
 use nalgebra::{Cholesky, DMatrix, DVector};
 use serde::Serialize;
 
@@ -713,144 +717,5 @@ impl JointFilter<'_> {
     fn sandwich_stale(&self) -> bool {
         let w = (self.k + 2 * self.a_eff.half_width()).min(self.model.subsystems - 1);
         self.p_filt.width() != w
-    }
-}
-
-/// One step of a [`JointSchedule`].
-struct ScheduledStep {
-    /// The Cholesky factor of `Λ⁺(t)`.
-    chol: BandCholesky,
-    /// Every subsystem's `R_i⁻¹ H_i` (`q × n`, column-major), so that `r_i = (R_i⁻¹ H_i)ᵀ ỹ_i`.
-    gains: Vec<f64>,
-    block_filt: Vec<f64>,
-    block_pred: Vec<f64>,
-}
-
-/// The covariance pass of the unknown-dropout joint filter with the `band` or `lifted`
-/// moment, stored per step. It depends on the model and the inputs only, not on the
-/// measurements (docs/theory.md §8), so `evaluate` computes it once and replays it for every run with
-/// [`ScheduledJoint`], which costs a banded solve and a chain solve per step.
-pub struct JointSchedule<'m> {
-    model: &'m Model,
-    steps: Vec<ScheduledStep>,
-}
-
-impl<'m> JointSchedule<'m> {
-    /// Bytes a schedule of `steps` steps needs with band `k`.
-    pub fn bytes(model: &Model, k: usize, steps: usize) -> usize {
-        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
-        let k = k.min(big_n - 1);
-        steps * 8 * big_n * (2 * (k + 1) * n * n + q * n + 2 * n * n)
-    }
-
-    /// Runs the covariance pass for the inputs `u[t]` (`N·m` values per step).
-    pub fn new(model: &'m Model, opts: JointOptions, u: &[Vec<f64>]) -> Result<Self> {
-        if opts.dropouts == Dropouts::Known || opts.second_moment == SecondMoment::Local {
-            return Err(Error::Usage(
-                "the joint filter's covariance pass depends on the data in the known-dropout mode and with the local moment".into(),
-            ));
-        }
-        let mut filter = JointFilter::new(model, opts)?;
-        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
-        filter.recorded_gains = Some(vec![0.0; big_n * q * n]);
-        let y = vec![0.0; big_n * q];
-        let mut steps = Vec::with_capacity(u.len());
-        for ut in u {
-            filter.step(&y, ut)?;
-            steps.push(ScheduledStep {
-                chol: filter.chol.clone(),
-                gains: filter.recorded_gains.clone().expect("recording"),
-                block_filt: filter.block_filt.clone(),
-                block_pred: filter.block_pred.clone(),
-            });
-        }
-        Ok(Self { model, steps })
-    }
-}
-
-/// The joint filter replayed from a [`JointSchedule`]: only the means are computed. Equal to
-/// [`JointFilter`] with the same options.
-pub struct ScheduledJoint<'s, 'm> {
-    sched: &'s JointSchedule<'m>,
-    t: usize,
-    solver: ChainSolver,
-    x_pred: Vec<f64>,
-    x_filt: Vec<f64>,
-    r: Vec<f64>,
-    innov: Vec<f64>,
-    lifted_ws: LiftedWorkspace,
-}
-
-impl<'s, 'm> ScheduledJoint<'s, 'm> {
-    pub fn new(sched: &'s JointSchedule<'m>) -> Result<Self> {
-        let model = sched.model;
-        let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
-        let x: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
-        Ok(Self {
-            sched,
-            t: 1,
-            solver: ChainSolver::new(model, 1)?,
-            x_filt: x.clone(),
-            x_pred: x,
-            r: vec![0.0; big_n * n],
-            innov: vec![0.0; q],
-            lifted_ws: LiftedWorkspace::default(),
-        })
-    }
-}
-
-impl ChainFilter for ScheduledJoint<'_, '_> {
-    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.sched.model;
-        let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
-        let t = self.t;
-        let Some(step) = self.sched.steps.get(t - 1) else {
-            return Err(Error::Usage(format!(
-                "the joint filter's schedule ends before t = {t}"
-            )));
-        };
-        let window = model.window(t);
-        for i in 0..model.subsystems {
-            let prm = model.param_set(window.ids[i]);
-            let p = window.p[i];
-            for k in 0..q {
-                let mut acc = y[i * q + k];
-                for c in 0..m {
-                    acc -= prm.R[(k, c)] * u[i * m + c];
-                }
-                for c in 0..n {
-                    acc -= p * prm.J[(k, c)] * self.x_pred[i * n + c];
-                }
-                self.innov[k] = acc;
-            }
-            let w = &step.gains[i * q * n..(i + 1) * q * n];
-            for c in 0..n {
-                self.r[i * n + c] = (0..q).map(|k| w[c * q + k] * self.innov[k]).sum();
-            }
-        }
-        step.chol.solve_in_place(&mut self.r);
-        for ((xf, xp), dx) in self.x_filt.iter_mut().zip(&self.x_pred).zip(&self.r) {
-            *xf = xp + dx;
-        }
-        self.solver.prepare(model, t)?;
-        propagate_mean(
-            model,
-            t,
-            &self.solver,
-            &self.x_filt,
-            Some(u),
-            &mut self.x_pred,
-            &mut self.lifted_ws,
-        );
-        self.t += 1;
-        Ok(())
-    }
-
-    fn filtered(&self) -> (&[f64], &[f64]) {
-        (&self.x_filt, &self.sched.steps[self.t - 2].block_filt)
-    }
-
-    fn predicted(&self) -> (&[f64], &[f64]) {
-        (&self.x_pred, &self.sched.steps[self.t - 2].block_pred)
     }
 }

@@ -1,0 +1,154 @@
+//! The filters and smoothers that `evaluate` compares, each with its name, its description,
+//! the filter a smoother smooths and the row its RMSE is divided by.
+
+use serde::{Deserialize, Serialize};
+
+use crate::choice::{Choice, Variant};
+
+/// A filter or smoother that `evaluate` compares (docs/theory.md §11). The declaration order
+/// is the tables' order; the smoothers (docs/theory.md §9) run with `--smooth`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Compared {
+    Distributed,
+    DistributedPaper,
+    Joint,
+    Centralized,
+    CentralizedKnown,
+    Naive,
+    DistributedSmoother,
+    JointSmoother,
+    CentralizedSmoother,
+}
+
+impl Choice for Compared {
+    /// Each with the description that ends the table.
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Distributed,
+            name: "distributed",
+            help: "two-step filter, default options (banded, local S, filtered)",
+        },
+        Variant {
+            value: Self::DistributedPaper,
+            name: "distributed-paper",
+            help: "two-step filter as printed in the paper (--paper)",
+        },
+        Variant {
+            value: Self::Joint,
+            name: "joint",
+            help: "joint band-k filter (--filter joint): banded lifted covariance, linear in N",
+        },
+        Variant {
+            value: Self::Centralized,
+            name: "centralized",
+            help: "centralized Nahi filter on the lifted system: the optimal linear estimator",
+        },
+        Variant {
+            value: Self::CentralizedKnown,
+            name: "centralized-known",
+            help: "centralized Kalman filter that knows which measurements were lost: a lower bound",
+        },
+        Variant {
+            value: Self::Naive,
+            name: "naive",
+            help: "per-subsystem Kalman filter that treats every measurement as present",
+        },
+        Variant {
+            value: Self::DistributedSmoother,
+            name: "distributed-smoother",
+            help: "per-subsystem RTS smoother on the two-step filter (--smooth)",
+        },
+        Variant {
+            value: Self::JointSmoother,
+            name: "joint-smoother",
+            help: "information-form smoother on the joint filter (--filter joint --smooth)",
+        },
+        Variant {
+            value: Self::CentralizedSmoother,
+            name: "centralized-smoother",
+            help: "RTS smoother on the centralized filter: the optimal linear smoother",
+        },
+    ];
+}
+
+impl Compared {
+    /// Every filter and smoother, in table order.
+    pub fn all() -> impl Iterator<Item = Self> {
+        Self::VARIANTS.iter().map(|v| v.value)
+    }
+
+    /// Its line in the description that ends the table.
+    pub fn description(self) -> &'static str {
+        Self::VARIANTS
+            .iter()
+            .find(|v| v.value == self)
+            .map_or("", |v| v.help)
+    }
+
+    /// For a smoother, the filter whose estimates it smooths.
+    pub fn smooths(self) -> Option<Self> {
+        match self {
+            Self::DistributedSmoother => Some(Self::Distributed),
+            Self::JointSmoother => Some(Self::Joint),
+            Self::CentralizedSmoother => Some(Self::Centralized),
+            _ => None,
+        }
+    }
+
+    pub fn is_smoother(self) -> bool {
+        self.smooths().is_some()
+    }
+
+    /// What its RMSE is divided by in the `/ central` column: the optimal linear filter, or
+    /// for a smoother the optimal linear smoother.
+    pub fn reference(self) -> Self {
+        if self.is_smoother() {
+            Self::CentralizedSmoother
+        } else {
+            Self::Centralized
+        }
+    }
+
+    /// Its place in the tables, which indexes the per-filter figures of a run.
+    pub(super) fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// Its name, padded as the tables ask.
+impl std::fmt::Display for Compared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.pad(self.name())
+    }
+}
+
+/// The number of [`Compared`] values.
+pub(super) const COMPARED: usize = Compared::VARIANTS.len();
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::choice::Choice;
+
+    #[test]
+    fn each_smoother_smooths_the_filter_it_is_named_after_and_is_compared_with_its_peer() {
+        for f in Compared::all() {
+            let name = f.name();
+            match f.smooths() {
+                Some(filter) => {
+                    assert_eq!(name, format!("{}-smoother", filter.name()));
+                    assert!(!filter.is_smoother());
+                    assert_eq!(f.reference(), Compared::CentralizedSmoother);
+                }
+                None => {
+                    assert!(!name.ends_with("-smoother"), "{name}");
+                    assert_eq!(f.reference(), Compared::Centralized);
+                }
+            }
+            assert!(!f.description().is_empty(), "{name}");
+            assert_eq!(Compared::all().nth(f.index()), Some(f), "{name}");
+        }
+        assert_eq!(Compared::all().count(), COMPARED);
+    }
+}
