@@ -123,16 +123,14 @@ impl ChainFilter for CentralizedFilter<'_> {
                         rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
                     }
                 }
-                for k in 0..q {
-                    let mut acc = y[i * q + k];
-                    for c in 0..m {
-                        acc -= prm.R[(k, c)] * u[i * m + c];
-                    }
-                    for c in 0..n {
-                        acc -= hb[(k, c)] * self.x_pred[i * n + c];
-                    }
-                    innov[i * q + k] = acc;
-                }
+                nahi::innovation(
+                    prm,
+                    p,
+                    &y[i * q..(i + 1) * q],
+                    &u[i * m..(i + 1) * m],
+                    &self.x_pred[i * n..(i + 1) * n],
+                    &mut innov.as_mut_slice()[i * q..(i + 1) * q],
+                );
             }
         }
         if self.known {
@@ -279,7 +277,7 @@ impl ChainFilter for ScheduledCentralized<'_, '_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = self.sched.model;
         let d = model.dims;
-        let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
+        let (n, big_n) = (d.n, model.subsystems);
         let t = self.t;
         let k = t - 1;
         if k >= self.sched.gains.len() {
@@ -287,21 +285,7 @@ impl ChainFilter for ScheduledCentralized<'_, '_> {
                 "the centralized schedule ends before t = {t}"
             )));
         }
-        let window = model.window(t);
-        for i in 0..big_n {
-            let prm = model.param_set(window.ids[i]);
-            let p = window.p[i];
-            for r in 0..q {
-                let mut acc = y[i * q + r];
-                for c in 0..m {
-                    acc -= prm.R[(r, c)] * u[i * m + c];
-                }
-                for c in 0..n {
-                    acc -= p * prm.J[(r, c)] * self.x_pred[i * n + c];
-                }
-                self.innov[i * q + r] = acc;
-            }
-        }
+        nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
         let size = big_n * n;
         let w = &self.sched.gains[k];
         let mut xf = nalgebra::DVectorViewMut::from_slice(&mut self.x_filt, size);

@@ -22,6 +22,49 @@
 
 use nalgebra::{Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector};
 
+use crate::model::{Model, Params};
+
+/// The innovation of one subsystem, `ỹ = y − R u − p J x̂` (`H = p J`), written into `out`
+/// (`q` values) from `y` (`q`), `u` (`m`) and the prediction `x̂` (`n`); an element lost in
+/// the known-dropout mode (NaN) stays NaN.
+pub fn innovation(prm: &Params, p: f64, y: &[f64], u: &[f64], x_pred: &[f64], out: &mut [f64]) {
+    for (k, o) in out.iter_mut().enumerate() {
+        let mut acc = y[k];
+        for (c, uc) in u.iter().enumerate() {
+            acc -= prm.R[(k, c)] * uc;
+        }
+        for (c, xc) in x_pred.iter().enumerate() {
+            acc -= p * prm.J[(k, c)] * xc;
+        }
+        *o = acc;
+    }
+}
+
+/// The innovations of the whole chain at step `t` with the arrival probabilities
+/// `p(t, i)`: [`innovation`] of each subsystem, written into `out` (`N·q` values) from `y`
+/// (`N·q`), `u` (`N·m`) and the predictions `x̂` (`N·n`).
+pub fn chain_innovations(
+    model: &Model,
+    t: usize,
+    y: &[f64],
+    u: &[f64],
+    x_pred: &[f64],
+    out: &mut [f64],
+) {
+    let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
+    let window = model.window(t);
+    for i in 0..model.subsystems {
+        innovation(
+            model.param_set(window.ids[i]),
+            window.p[i],
+            &y[i * q..(i + 1) * q],
+            &u[i * m..(i + 1) * m],
+            &x_pred[i * n..(i + 1) * n],
+            &mut out[i * q..(i + 1) * q],
+        );
+    }
+}
+
 /// Scratch matrices of one local update, sized once for `(n, q)`; reusing them makes the
 /// update allocation-free.
 #[derive(Debug, Clone)]

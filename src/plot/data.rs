@@ -11,6 +11,9 @@ use crate::error::{Error, Result};
 use crate::io::StepReader;
 use crate::io::estimates::{EstimatesDocument, estimates_header};
 
+/// The streaming reader of a per-`(t, i)` CSV file.
+type CsvReader = StepReader<Box<dyn Read>>;
+
 /// A file's name as used in messages.
 fn display_name(path: &Path) -> String {
     path.display().to_string()
@@ -64,30 +67,54 @@ fn probe_csv(path: &Path) -> Result<(Vec<String>, usize)> {
     Ok((header, subsystems))
 }
 
+/// The 0-based index of the 1-based `value` of the command-line option `option`, which must
+/// lie in `1..=count`; `holds` says where `count` comes from, for the message.
+pub fn one_based(option: &str, value: usize, count: usize, holds: &str) -> Result<usize> {
+    if !(1..=count).contains(&value) {
+        return Err(Error::Usage(format!(
+            "{option} {value}: expected 1..{count} ({holds})"
+        )));
+    }
+    Ok(value - 1)
+}
+
 /// The truth file of `simulate`: `t,i,x1..xn,gamma`.
 pub struct TruthFile {
-    pub reader: StepReader<Box<dyn Read>>,
+    pub reader: CsvReader,
     /// State dimension `n`.
     pub n: usize,
     /// Chain length `N`.
     pub subsystems: usize,
 }
 
+/// A per-`(t, i)` CSV `t,i,{prefix}1..{prefix}w` followed by the columns `extra`, its width
+/// `w` learnt from the header: the reader, `w` and the chain length `N`. Empty cells are
+/// read as NaN when `allow_empty`.
+fn open_step_file(
+    path: &Path,
+    prefix: &str,
+    extra: &[&str],
+    allow_empty: bool,
+) -> Result<(CsvReader, usize, usize)> {
+    let (header, subsystems) = probe_csv(path)?;
+    let width = header.len().saturating_sub(2 + extra.len()).max(1);
+    let mut expected = vec!["t".to_string(), "i".to_string()];
+    expected.extend((1..=width).map(|k| format!("{prefix}{k}")));
+    expected.extend(extra.iter().map(|e| e.to_string()));
+    let reader = StepReader::with_header(
+        &display_name(path),
+        open(path)?,
+        expected,
+        allow_empty,
+        "",
+        subsystems,
+    )?;
+    Ok((reader, width, subsystems))
+}
+
 impl TruthFile {
     pub fn open(path: &Path) -> Result<Self> {
-        let (header, subsystems) = probe_csv(path)?;
-        let n = header.len().saturating_sub(3).max(1);
-        let mut expected = vec!["t".to_string(), "i".to_string()];
-        expected.extend((1..=n).map(|k| format!("x{k}")));
-        expected.push("gamma".into());
-        let reader = StepReader::with_header(
-            &display_name(path),
-            open(path)?,
-            expected,
-            false,
-            "",
-            subsystems,
-        )?;
+        let (reader, n, subsystems) = open_step_file(path, "x", &["gamma"], false)?;
         Ok(Self {
             reader,
             n,
@@ -103,25 +130,14 @@ impl TruthFile {
 
 /// The measurement file: `t,i,y1..yq` (an empty cell, a lost element, reads as NaN).
 pub struct MeasurementFile {
-    pub reader: StepReader<Box<dyn Read>>,
+    pub reader: CsvReader,
     pub q: usize,
     pub subsystems: usize,
 }
 
 impl MeasurementFile {
     pub fn open(path: &Path) -> Result<Self> {
-        let (header, subsystems) = probe_csv(path)?;
-        let q = header.len().saturating_sub(2).max(1);
-        let mut expected = vec!["t".to_string(), "i".to_string()];
-        expected.extend((1..=q).map(|k| format!("y{k}")));
-        let reader = StepReader::with_header(
-            &display_name(path),
-            open(path)?,
-            expected,
-            true,
-            "",
-            subsystems,
-        )?;
+        let (reader, q, subsystems) = open_step_file(path, "y", &[], true)?;
         Ok(Self {
             reader,
             q,

@@ -262,20 +262,38 @@ fn rmse_panel(area: &Area, filters: &[FilterResult], n: usize, config: &str) -> 
     }
 }
 
-fn bar_chart<'a, 'b, X: AsRangedCoord<Value = f64>>(
+/// A chart of one row per filter (names on the left) with its `x` axis, described by `desc`,
+/// and its grid drawn.
+fn bar_chart<'a, 'b, X>(
     area: &'a Area<'b>,
     header: u32,
     x: X,
     y: Range<f64>,
-) -> Result<ChartContext<'a, SVGBackend<'b>, Cartesian2d<X::CoordDescType, RangedCoordf64>>> {
-    Ok(ChartBuilder::on(area)
+    desc: &str,
+) -> Result<ChartContext<'a, SVGBackend<'b>, Cartesian2d<X::CoordDescType, RangedCoordf64>>>
+where
+    X: AsRangedCoord<Value = f64>,
+    X::CoordDescType: ValueFormatter<f64>,
+{
+    let mut ch = ChartBuilder::on(area)
         .margin_top(header)
         .margin_left(8)
         .margin_right(30)
         .margin_bottom(6)
         .x_label_area_size(44)
         .y_label_area_size(NAMES_WIDTH)
-        .build_cartesian_2d(x, y)?)
+        .build_cartesian_2d(x, y)?;
+    ch.configure_mesh()
+        .disable_y_mesh()
+        .disable_y_axis()
+        .x_desc(desc)
+        .axis_desc_style(font(DESC_SIZE))
+        .label_style(font(LABEL_SIZE))
+        .x_label_formatter(&|v| fmt_tick(*v))
+        .light_line_style(TRANSPARENT)
+        .bold_line_style(GRID)
+        .draw()?;
+    Ok(ch)
 }
 
 /// The RMSE bars of the filters.
@@ -300,17 +318,7 @@ impl Bars<'_> {
         X::CoordDescType: ValueFormatter<f64>,
     {
         let rows = self.filters.len();
-        let mut ch = bar_chart(area, header, x, y)?;
-        ch.configure_mesh()
-            .disable_y_mesh()
-            .disable_y_axis()
-            .x_desc(desc)
-            .axis_desc_style(font(DESC_SIZE))
-            .label_style(font(LABEL_SIZE))
-            .x_label_formatter(&|v| fmt_tick(*v))
-            .light_line_style(TRANSPARENT)
-            .bold_line_style(GRID)
-            .draw()?;
+        let mut ch = bar_chart(area, header, x, y, desc)?;
         let bar = 1.0 / (self.n as f64 + 1.0 + 1.3);
         for (row, f) in self.filters.iter().enumerate() {
             // The first filter on top.
@@ -448,17 +456,7 @@ impl Dots<'_> {
     {
         let (lo, hi) = (range.start, range.end);
         let rows = self.filters.len();
-        let mut ch = bar_chart(area, header, x, 0.0..rows as f64)?;
-        ch.configure_mesh()
-            .disable_y_mesh()
-            .disable_y_axis()
-            .x_desc(desc)
-            .axis_desc_style(font(DESC_SIZE))
-            .label_style(font(LABEL_SIZE))
-            .x_label_formatter(&|v| fmt_tick(*v))
-            .light_line_style(TRANSPARENT)
-            .bold_line_style(GRID)
-            .draw()?;
+        let mut ch = bar_chart(area, header, x, 0.0..rows as f64, desc)?;
         ch.draw_series(std::iter::once(PathElement::new(
             vec![(1.0, 0.0), (1.0, rows as f64)],
             BLACK.stroke_width(1),

@@ -11,12 +11,11 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use plotters::prelude::*;
-use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use super::data::{EstimatesFile, TruthFile, drawable_error, ends_early, same_chain};
+use super::data::{EstimatesFile, TruthFile, drawable_error, ends_early, one_based, same_chain};
 use super::{
-    Area, DESC_SIZE, LABEL_SIZE, TITLE_SIZE, WIDTH, commit_svg, draw_centered, fmt_tick, font,
-    open_output,
+    Area, DESC_SIZE, LABEL_SIZE, TITLE_SIZE, WIDTH, commit_svg, draw_centered, draw_label,
+    fmt_tick, font, open_output,
 };
 use crate::error::Error;
 use crate::io::Role;
@@ -80,14 +79,12 @@ pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
         }
         .into());
     }
-    if !(1..=n).contains(&args.state) {
-        return Err(Error::Usage(format!(
-            "--state {}: expected 1..{n} ({truth_name} holds n = {n} states per subsystem)",
-            args.state
-        ))
-        .into());
-    }
-    let k = args.state - 1;
+    let k = one_based(
+        "--state",
+        args.state,
+        n,
+        &format!("{truth_name} holds n = {n} states per subsystem"),
+    )?;
     let width = est.row_width();
     let var_at = est.variance_index(k);
     let mut x_true = vec![0.0; truth.row_values()];
@@ -423,36 +420,20 @@ fn color_bar(area: &Area, scale: Scale, quantity: &str, cells: &[f64]) -> Result
     for v in scale.ticks() {
         let y = bottom - (scale.fraction(v) * (bottom - top) as f64).round() as i32;
         area.draw(&PathElement::new(vec![(x1, y), (x1 + 5, y)], BLACK))?;
-        area.draw(&Text::new(
-            fmt_tick(v),
-            (x1 + 8, y),
-            font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-        ))?;
+        draw_label(area, fmt_tick(v), (x1 + 8, y))?;
     }
     let clipped = cells.iter().any(|&v| v > scale.top());
-    area.draw(&Text::new(
-        quantity.to_string(),
-        (x0, top - 40),
-        font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-    ))?;
+    draw_label(area, quantity, (x0, top - 40))?;
     if let Scale::Log { .. } = scale {
-        area.draw(&Text::new(
-            "(log scale)".to_string(),
-            (x0, top - 20),
-            font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-        ))?;
+        draw_label(area, "(log scale)", (x0, top - 20))?;
     }
     if clipped {
-        area.draw(&Text::new(
+        draw_label(
+            area,
             format!("≥ {} drawn", fmt_tick(scale.top())),
             (x0, bottom + 18),
-            font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-        ))?;
-        area.draw(&Text::new(
-            "at the top".to_string(),
-            (x0, bottom + 36),
-            font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-        ))?;
+        )?;
+        draw_label(area, "at the top", (x0, bottom + 36))?;
     }
     Ok(())
 }

@@ -167,6 +167,16 @@ pub(crate) fn draw_centered(area: &Area, text: &str, y: i32, size: f64) -> Resul
     Ok(())
 }
 
+/// Draws a label whose left edge and vertical centre are at `at` (pixels).
+pub(crate) fn draw_label(area: &Area, text: impl Into<String>, at: (i32, i32)) -> Result<()> {
+    area.draw(&Text::new(
+        text.into(),
+        at,
+        font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
+    ))?;
+    Ok(())
+}
+
 /// Height of a legend line (pixels).
 pub(crate) const LEGEND_LINE: i32 = 22;
 
@@ -271,11 +281,7 @@ pub(crate) fn draw_legend(area: &Area, x: i32, y: i32, entries: &[(Swatch, Strin
             }
             Swatch::None => {}
         }
-        area.draw(&Text::new(
-            label.clone(),
-            (cx + swatch_width(swatch), cy),
-            font(LABEL_SIZE).pos(Pos::new(HPos::Left, VPos::Center)),
-        ))?;
+        draw_label(area, label.clone(), (cx + swatch_width(swatch), cy))?;
     }
     Ok(())
 }

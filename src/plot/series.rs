@@ -17,7 +17,7 @@ use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 use super::data::{
-    EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, same_chain,
+    EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, one_based, same_chain,
 };
 use super::{
     Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, PALETTE,
@@ -151,21 +151,18 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
     if let Some(m) = &meas {
         same_chain((m.reader.name(), m.subsystems), (&truth_name, big_n))?;
     }
-    if !(1..=big_n).contains(&args.subsystem) {
-        return Err(Error::Usage(format!(
-            "--subsystem {}: expected 1..{big_n} ({truth_name} holds N = {big_n} subsystems)",
-            args.subsystem
-        ))
-        .into());
-    }
-    if !(1..=n).contains(&args.state) {
-        return Err(Error::Usage(format!(
-            "--state {}: expected 1..{n} ({truth_name} holds n = {n} states per subsystem)",
-            args.state
-        ))
-        .into());
-    }
-    let (i, k) = (args.subsystem - 1, args.state - 1);
+    let i = one_based(
+        "--subsystem",
+        args.subsystem,
+        big_n,
+        &format!("{truth_name} holds N = {big_n} subsystems"),
+    )?;
+    let k = one_based(
+        "--state",
+        args.state,
+        n,
+        &format!("{truth_name} holds n = {n} states per subsystem"),
+    )?;
 
     let mut x_true = vec![0.0; truth.row_values()];
     let width = est.row_width();
@@ -511,12 +508,17 @@ fn lost_entry(d: &SeriesData) -> (Swatch, String) {
     )
 }
 
-fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
-    let steps = d.truth.len();
-    let tracks: Vec<(&Track, RGBColor)> = std::iter::once(&d.estimate)
+/// The estimates drawn, each with its colour: the estimate, and the smoothed one if given.
+fn tracks(d: &SeriesData) -> Vec<(&Track, RGBColor)> {
+    std::iter::once(&d.estimate)
         .chain(d.smoothed.as_ref())
         .zip([ESTIMATE, SMOOTHED])
-        .collect();
+        .collect()
+}
+
+fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
+    let steps = d.truth.len();
+    let tracks = tracks(d);
     let mut range = extent(d.truth.iter());
     for (tr, _) in &tracks {
         for t in 0..steps {
@@ -573,10 +575,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
 
 fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
     let steps = d.truth.len();
-    let tracks: Vec<(&Track, RGBColor)> = std::iter::once(&d.estimate)
-        .chain(d.smoothed.as_ref())
-        .zip([ESTIMATE, SMOOTHED])
-        .collect();
+    let tracks = tracks(d);
     let mut bound: f64 = 0.0;
     let mut legend = Vec::new();
     for (tr, c) in &tracks {

@@ -242,16 +242,7 @@ impl InfoWorkspace {
             self.js.gemm_tr(1.0, &self.h_tr, &self.s, 0.0);
             self.reff.gemm(p * (1.0 - p), &self.js, &self.h_tr, 1.0);
         }
-        for k in 0..q {
-            let mut acc = y[k];
-            for c in 0..u.len() {
-                acc -= prm.R[(k, c)] * u[c];
-            }
-            for c in 0..n {
-                acc -= self.h[(k, c)] * x[c];
-            }
-            self.innov[k] = acc;
-        }
+        nahi::innovation(prm, p, y, u, x, self.innov.as_mut_slice());
         if known {
             for k in 0..q {
                 if y[k].is_nan() {

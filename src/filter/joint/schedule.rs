@@ -4,7 +4,7 @@
 use super::{JointFilter, JointOptions};
 use crate::band::BandCholesky;
 use crate::error::{Error, Result};
-use crate::filter::{ChainFilter, Dropouts, SecondMoment};
+use crate::filter::{ChainFilter, Dropouts, SecondMoment, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedWorkspace, propagate_mean};
 use crate::model::Model;
@@ -86,7 +86,7 @@ impl<'s, 'm> ScheduledJoint<'s, 'm> {
             x_filt: x.clone(),
             x_pred: x,
             r: vec![0.0; big_n * n],
-            innov: vec![0.0; q],
+            innov: vec![0.0; big_n * q],
             lifted_ws: LiftedWorkspace::default(),
         })
     }
@@ -95,30 +95,19 @@ impl<'s, 'm> ScheduledJoint<'s, 'm> {
 impl ChainFilter for ScheduledJoint<'_, '_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = self.sched.model;
-        let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
+        let (n, q) = (model.dims.n, model.dims.q);
         let t = self.t;
         let Some(step) = self.sched.steps.get(t - 1) else {
             return Err(Error::Usage(format!(
                 "the joint filter's schedule ends before t = {t}"
             )));
         };
-        let window = model.window(t);
+        nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
         for i in 0..model.subsystems {
-            let prm = model.param_set(window.ids[i]);
-            let p = window.p[i];
-            for k in 0..q {
-                let mut acc = y[i * q + k];
-                for c in 0..m {
-                    acc -= prm.R[(k, c)] * u[i * m + c];
-                }
-                for c in 0..n {
-                    acc -= p * prm.J[(k, c)] * self.x_pred[i * n + c];
-                }
-                self.innov[k] = acc;
-            }
             let w = &step.gains[i * q * n..(i + 1) * q * n];
+            let innov = &self.innov[i * q..(i + 1) * q];
             for c in 0..n {
-                self.r[i * n + c] = (0..q).map(|k| w[c * q + k] * self.innov[k]).sum();
+                self.r[i * n + c] = (0..q).map(|k| w[c * q + k] * innov[k]).sum();
             }
         }
         step.chol.solve_in_place(&mut self.r);
