@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use sisfilt::config::ConfigSource;
 use sisfilt::filter::kernel::DynamicKernel;
-use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions};
+use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions, Update};
 use sisfilt::interconnect::SolverKind;
 use sisfilt::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
 use sisfilt::io::{StepLayout, StepReader};
@@ -139,6 +139,12 @@ fn steps_after_the_first_allocate_nothing() {
                 }
             }
         }
+        // The mixture update (docs/theory.md §10), unknown dropouts only.
+        let opts = TwoStepOptions {
+            update: Update::Mixture,
+            ..TwoStepOptions::default()
+        };
+        cases.push((format!("{name} {opts:?}"), model, opts));
     }
     for (name, model, opts) in &cases {
         let known = opts.dropouts == Dropouts::Known;

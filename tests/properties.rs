@@ -308,6 +308,7 @@ fn options(solver: u8, moment: u8, from: u8, known: bool) -> TwoStepOptions {
         } else {
             Dropouts::Unknown
         },
+        ..TwoStepOptions::default()
     }
 }
 

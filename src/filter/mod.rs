@@ -38,6 +38,11 @@ pub trait ChainFilter {
     fn covariance_band(&self, _predicted: bool) -> Option<(&SymBand, usize)> {
         None
     }
+    /// With the mixture update (docs/theory.md §10): `π(t, i)` of the last step, the
+    /// posterior probability that each subsystem's measurement arrived (`N` values).
+    fn arrival(&self) -> Option<&[f64]> {
+        None
+    }
 }
 
 /// Checks the estimates of step `t` (`x̂`, `N·n` values, and the diagonal blocks of `P`,
@@ -162,6 +167,29 @@ impl Choice for Dropouts {
     ];
 }
 
+/// How a measurement updates the estimate (the meaning of each in [`Choice::VARIANTS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Update {
+    Linear,
+    Mixture,
+}
+
+impl Choice for Update {
+    const VARIANTS: &'static [Variant<Self>] = &[
+        Variant {
+            value: Self::Linear,
+            name: "linear",
+            help: "Nahi's update, the best linear estimator (docs/theory.md §4; the paper's, default)",
+        },
+        Variant {
+            value: Self::Mixture,
+            name: "mixture",
+            help: "Weighs each measurement by the posterior probability that it arrived (docs/theory.md §10)",
+        },
+    ];
+}
+
 /// Options of the two-step filter.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct TwoStepOptions {
@@ -169,6 +197,8 @@ pub struct TwoStepOptions {
     pub second_moment: SecondMoment,
     pub interconnect_from: InterconnectFrom,
     pub dropouts: Dropouts,
+    /// `mixture` needs unknown dropouts; it ignores `second_moment`.
+    pub update: Update,
 }
 
 impl Default for TwoStepOptions {
@@ -178,6 +208,7 @@ impl Default for TwoStepOptions {
             second_moment: SecondMoment::Local,
             interconnect_from: InterconnectFrom::Filtered,
             dropouts: Dropouts::Unknown,
+            update: Update::Linear,
         }
     }
 }
@@ -189,7 +220,7 @@ impl TwoStepOptions {
             solver: SolverKind::Transfer,
             second_moment: SecondMoment::Paper,
             interconnect_from: InterconnectFrom::Predicted,
-            dropouts: Dropouts::Unknown,
+            ..Self::default()
         }
     }
 }

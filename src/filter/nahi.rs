@@ -84,6 +84,8 @@ pub struct Workspace {
     s: DMatrix<f64>,
     nn: DMatrix<f64>,
     innov: DVector<f64>,
+    /// A second `q`-vector: the mixture update's `y − R u`.
+    noise: DVector<f64>,
 }
 
 impl Workspace {
@@ -103,6 +105,7 @@ impl Workspace {
             s: DMatrix::zeros(n, n),
             nn: DMatrix::zeros(n, n),
             innov: DVector::zeros(q),
+            noise: DVector::zeros(q),
         }
     }
 
@@ -250,6 +253,117 @@ pub fn kalman_update(
     true
 }
 
+/// What the mixture update learnt of one measurement `y(t, i)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Arrival {
+    /// `π`: the posterior probability that the measurement arrived.
+    pub probability: f64,
+    /// `log(p e^ℓ₁ + (1−p) e^ℓ₀)`: the log density of the measurement given the past.
+    pub loglik: f64,
+}
+
+/// `log 2π`.
+const LN_2PI: f64 = 1.837_877_066_409_345_5;
+
+/// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L`; `v` is overwritten by `L⁻¹ v`.
+fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
+    let log_det: f64 = (0..l.nrows()).map(|k| 2.0 * l[(k, k)].ln()).sum();
+    l.solve_lower_triangular_mut(v);
+    -0.5 * (l.nrows() as f64 * LN_2PI + log_det + v.norm_squared())
+}
+
+/// The mixture update of one subsystem (docs/theory.md §10): the measurement either carries
+/// the state (`y = J x + R u + d`, prior probability `p`) or is pure noise (`y = R u + d`).
+/// From the prior `N(x̂, T)`, with `e₀ = y − R u`, `e = e₀ − J x̂`, `S₁ = J T Jᵀ + M`:
+///
+/// ```text
+/// ℓ₁ = log N(e; 0, S₁),  ℓ₀ = log N(e₀; 0, M)
+/// π  = p e^ℓ₁ / (p e^ℓ₁ + (1−p) e^ℓ₀)            (0 when p = 0, 1 when p = 1)
+/// K  = T Jᵀ S₁⁻¹,   g = K e
+/// x̂(t|t) = x̂ + π g
+/// P(t|t) = T − π K S₁ Kᵀ + π(1−π) g gᵀ            (the mixture's covariance, symmetrised)
+/// ```
+///
+/// `p = 1` is the Kalman update, `p = 0` leaves the prior. Writes `x̂(t|t)` into `x_filt`
+/// and `P(t|t)` into `p_filt`; returns `None` when `S₁` or `M` is not positive definite.
+/// The known-dropout mode has nothing to detect: `meas.known` must be false.
+pub fn mixture_update(
+    meas: &Measurement,
+    x_pred: &[f64],
+    t_pred: &[f64],
+    x_filt: &mut [f64],
+    p_filt: &mut [f64],
+    ws: &mut Workspace,
+) -> Option<Arrival> {
+    let (q, n) = ws.h.shape();
+    let p = meas.p;
+    let t_mat = DMatrixView::from_slice(t_pred, n, n);
+    // J T, and S₁ = J T Jᵀ + M.
+    ws.h.copy_from(meas.j);
+    ws.ht.gemm(1.0, &ws.h, &t_mat, 0.0);
+    ws.h_tr.tr_copy_from(&ws.h);
+    ws.sigma.copy_from(meas.m);
+    ws.sigma.gemm(1.0, &ws.ht, &ws.h_tr, 1.0);
+    for k in 0..q {
+        ws.noise[k] = meas.y[k] - meas.ru[k];
+        let mut jx = 0.0;
+        for c in 0..n {
+            jx += meas.j[(k, c)] * x_pred[c];
+        }
+        ws.innov[k] = ws.noise[k] - jx;
+    }
+    // ℓ₀ from the Cholesky factor of M (in `reff`), overwriting e₀.
+    ws.reff.copy_from(meas.m);
+    let Some(chol) = Cholesky::new(std::mem::replace(&mut ws.reff, DMatrix::zeros(0, 0))) else {
+        ws.reff = DMatrix::zeros(q, q);
+        return None;
+    };
+    ws.reff = chol.unpack();
+    let ell0 = log_density(&ws.reff, &mut ws.noise);
+    // W = S₁⁻¹ J T = Kᵀ, then ℓ₁ from the factor of S₁ on a copy of e.
+    let sigma = std::mem::replace(&mut ws.sigma, DMatrix::zeros(0, 0));
+    let Some(chol) = Cholesky::new(sigma) else {
+        ws.sigma = DMatrix::zeros(q, q);
+        return None;
+    };
+    ws.w.copy_from(&ws.ht);
+    chol.solve_mut(&mut ws.w);
+    ws.sigma = chol.unpack();
+    // g = K e, before `innov` turns into L⁻¹ e.
+    for c in 0..n {
+        x_filt[c] = (0..q).map(|k| ws.w[(k, c)] * ws.innov[k]).sum();
+    }
+    let ell1 = log_density(&ws.sigma, &mut ws.innov);
+    let (arrival, loglik) = if p <= 0.0 {
+        (0.0, ell0)
+    } else if p >= 1.0 {
+        (1.0, ell1)
+    } else {
+        let (a, b) = (p.ln() + ell1, (1.0 - p).ln() + ell0);
+        (
+            1.0 / (1.0 + (b - a).exp()),
+            a.max(b) + (-(a - b).abs()).exp().ln_1p(),
+        )
+    };
+    let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
+    p_mat.copy_from(&t_mat);
+    p_mat.gemm_tr(-arrival, &ws.w, &ws.ht, 1.0);
+    let spread = arrival * (1.0 - arrival);
+    for c in 0..n {
+        for r in 0..n {
+            p_mat[(r, c)] += spread * x_filt[r] * x_filt[c];
+        }
+    }
+    symmetrize(&mut p_mat);
+    for c in 0..n {
+        x_filt[c] = x_pred[c] + arrival * x_filt[c];
+    }
+    Some(Arrival {
+        probability: arrival,
+        loglik,
+    })
+}
+
 /// `out = F X Fᵀ + Q` (symmetrised), for the covariance predictions.
 pub fn propagate_cov(
     f: &DMatrix<f64>,
@@ -358,5 +472,151 @@ mod tests {
         for k in 0..4 {
             assert!((pf[k] - p_exp.as_slice()[k]).abs() < 1e-14);
         }
+    }
+
+    /// A 3-state, 2-measurement subsystem for the mixture update's tests: `J`, `M`, the
+    /// prior `N(x, T)` and `R u`.
+    struct MixtureCase {
+        j: DMatrix<f64>,
+        m: DMatrix<f64>,
+        t: DMatrix<f64>,
+        x: [f64; 3],
+        ru: [f64; 2],
+    }
+
+    fn mixture_case() -> MixtureCase {
+        MixtureCase {
+            j: DMatrix::from_row_slice(2, 3, &[1.0, 0.5, 0.0, 0.0, -0.3, 2.0]),
+            m: DMatrix::from_row_slice(2, 2, &[0.4, 0.1, 0.1, 0.3]),
+            t: DMatrix::from_row_slice(3, 3, &[1.2, 0.3, -0.1, 0.3, 0.8, 0.2, -0.1, 0.2, 0.5]),
+            x: [0.4, -1.0, 2.0],
+            ru: [0.2, -0.1],
+        }
+    }
+
+    /// `log N(v; 0, S)` with an explicit inverse and determinant.
+    fn dense_log_density(v: &DVector<f64>, s: &DMatrix<f64>) -> f64 {
+        let inv = s.clone().try_inverse().unwrap();
+        -0.5 * (v.len() as f64 * (2.0 * std::f64::consts::PI).ln()
+            + s.determinant().ln()
+            + v.dot(&(inv * v)))
+    }
+
+    fn run_mixture(
+        p: f64,
+        y: &[f64; 2],
+        ws: &mut Workspace,
+    ) -> (Option<Arrival>, Vec<f64>, Vec<f64>) {
+        let MixtureCase { j, m, t, x, ru } = mixture_case();
+        let meas = Measurement {
+            j: &j,
+            m: &m,
+            y,
+            ru: &ru,
+            p,
+            known: false,
+        };
+        let (mut xf, mut pf) = (vec![0.0; 3], vec![0.0; 9]);
+        let arrival = mixture_update(&meas, &x, t.as_slice(), &mut xf, &mut pf, ws);
+        (arrival, xf, pf)
+    }
+
+    /// The mixture update is the moment match of the two hypotheses, written out densely
+    /// here: with probability π the Kalman posterior `N(x̂ + K e, T − K S₁ Kᵀ)`, else the prior,
+    /// with π and the log-likelihood from the two Gaussian densities.
+    #[test]
+    fn mixture_update_matches_the_two_hypotheses_moments() {
+        let MixtureCase { j, m, t, x, ru } = mixture_case();
+        let x = DVector::from_column_slice(&x);
+        let mut ws = Workspace::new(3, 2);
+        // Readings near the prediction, far from it, near pure noise, and between the two
+        // (where π(1 − π) widens P); several p.
+        let mut undecided = 0;
+        for (y, p) in [
+            ([0.15, 1.2], 0.5),
+            ([0.0, 3.6], 0.7),
+            ([4.0, -5.0], 0.7),
+            ([0.15, -0.05], 0.9),
+            ([0.5, 3.0], 0.2),
+        ] {
+            let e0 = DVector::from_column_slice(&y) - DVector::from_column_slice(&ru);
+            let e = &e0 - &j * &x;
+            let s1 = &j * &t * j.transpose() + &m;
+            let (l1, l0) = (dense_log_density(&e, &s1), dense_log_density(&e0, &m));
+            let (w1, w0) = (p * l1.exp(), (1.0 - p) * l0.exp());
+            let pi = w1 / (w1 + w0);
+            let k = &t * j.transpose() * s1.clone().try_inverse().unwrap();
+            let mean1 = &x + &k * &e;
+            let cov1 = &t - &k * &s1 * k.transpose();
+            let mean = &mean1 * pi + &x * (1.0 - pi);
+            let (d1, d0) = (&mean1 - &mean, &x - &mean);
+            let cov = (cov1 + &d1 * d1.transpose()) * pi + (&t + &d0 * d0.transpose()) * (1.0 - pi);
+
+            let (arrival, xf, pf) = run_mixture(p, &y, &mut ws);
+            let arrival = arrival.expect("positive definite");
+            undecided += usize::from((0.1..0.9).contains(&pi));
+            assert!(
+                (arrival.probability - pi).abs() < 1e-12,
+                "{y:?}: π {arrival:?} vs {pi}"
+            );
+            assert!((arrival.loglik - (w1 + w0).ln()).abs() < 1e-12, "{y:?}");
+            for r in 0..3 {
+                assert!((xf[r] - mean[r]).abs() < 1e-12, "{y:?}: x̂ {xf:?} vs {mean}");
+                for c in 0..3 {
+                    assert!(
+                        (pf[r + 3 * c] - cov[(r, c)]).abs() < 1e-12,
+                        "{y:?}: P {pf:?} vs {cov}"
+                    );
+                }
+            }
+        }
+        assert!(undecided > 0, "no reading left the hypotheses undecided");
+    }
+
+    /// `p = 1` is the Kalman update ([`update`] with `p = 1`, whose `R_eff` is `M`); `p = 0`
+    /// leaves the prior untouched.
+    #[test]
+    fn mixture_update_with_p_one_is_kalman_and_with_p_zero_keeps_the_prior() {
+        let MixtureCase { j, m, t, x, ru } = mixture_case();
+        let y = [1.0, 2.5];
+        let mut ws = Workspace::new(3, 2);
+        let (arrival, xf, pf) = run_mixture(1.0, &y, &mut ws);
+        assert_eq!(arrival.unwrap().probability, 1.0);
+        let meas = Measurement {
+            j: &j,
+            m: &m,
+            y: &y,
+            ru: &ru,
+            p: 1.0,
+            known: false,
+        };
+        let (mut xk, mut pk) = (vec![0.0; 3], vec![0.0; 9]);
+        assert!(update(&meas, &x, t.as_slice(), &mut xk, &mut pk, &mut ws));
+        for (a, b) in xf.iter().zip(&xk).chain(pf.iter().zip(&pk)) {
+            assert!((a - b).abs() < 1e-12, "{xf:?} {pf:?} vs {xk:?} {pk:?}");
+        }
+
+        let (arrival, xf, pf) = run_mixture(0.0, &y, &mut ws);
+        assert_eq!(arrival.unwrap().probability, 0.0);
+        assert_eq!(xf, x);
+        assert_eq!(pf, t.as_slice());
+    }
+
+    /// A measurement covariance that is not positive definite is refused, not used.
+    #[test]
+    fn mixture_update_refuses_an_indefinite_m() {
+        let MixtureCase { j, t, x, ru, .. } = mixture_case();
+        let m = DMatrix::from_row_slice(2, 2, &[0.4, 0.9, 0.9, 0.3]);
+        let meas = Measurement {
+            j: &j,
+            m: &m,
+            y: &[0.0, 0.0],
+            ru: &ru,
+            p: 0.5,
+            known: false,
+        };
+        let (mut xf, mut pf) = (vec![0.0; 3], vec![0.0; 9]);
+        let mut ws = Workspace::new(3, 2);
+        assert!(mixture_update(&meas, &x, t.as_slice(), &mut xf, &mut pf, &mut ws).is_none());
     }
 }

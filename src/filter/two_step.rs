@@ -26,7 +26,9 @@ use nalgebra::DMatrix;
 
 use crate::error::{Error, Result};
 use crate::filter::kernel::{DynamicKernel, FixedKernel, LocalData, LocalKernel};
-use crate::filter::{ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions};
+use crate::filter::{
+    ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update, nahi,
+};
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
 use crate::linalg::mat_vec_add;
@@ -55,7 +57,8 @@ impl Sharing {
     };
 
     fn of(model: &Model, opts: &TwoStepOptions) -> Sharing {
-        if opts.dropouts == Dropouts::Known {
+        // The mixture update's covariance depends on each subsystem's reading.
+        if opts.dropouts == Dropouts::Known || opts.update == Update::Mixture {
             return Sharing::NONE;
         }
         // Compared by value: two parameter sets may hold the same matrices.
@@ -121,6 +124,10 @@ pub struct TwoStepFilter<'m, K: LocalKernel = DynamicKernel> {
     /// sequential path).
     workers: Vec<Worker<K>>,
     solver_error: f64,
+    /// The mixture update's `π(t, i)` and the log density of each `y(t, i)` (`N` each;
+    /// empty with the linear update).
+    arrival: Vec<f64>,
+    loglik: Vec<f64>,
 }
 
 /// The preallocated state of one chunk's local work.
@@ -133,6 +140,8 @@ struct Worker<K> {
     ru: Vec<f64>,
     cov: Vec<f64>,
     mean: Vec<f64>,
+    /// The mixture update's scratch.
+    mixture: nahi::Workspace,
 }
 
 impl<K: LocalKernel> Worker<K> {
@@ -145,6 +154,7 @@ impl<K: LocalKernel> Worker<K> {
             ru: vec![0.0; q],
             cov: vec![0.0; n * n],
             mean: vec![0.0; n],
+            mixture: nahi::Workspace::new(n, q),
         }
     }
 }
@@ -157,6 +167,7 @@ struct UpdateInputs<'a, G> {
     model: &'a Model,
     t: usize,
     known: bool,
+    mixture: bool,
     second_moment: SecondMoment,
     from_predicted: bool,
     lifted: Option<&'a LiftedMoments>,
@@ -172,7 +183,8 @@ struct UpdateInputs<'a, G> {
     u: &'a [f64],
 }
 
-/// The Nahi updates and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
+/// The local updates (Nahi's, or the mixture update with its `π` and log density into
+/// `arrival` and `loglik`) and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
 /// (0-based). Returns the first subsystem whose `Σ` is not positive definite.
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
@@ -181,6 +193,7 @@ fn update_range<K: LocalKernel>(
     x_filt: &mut [f64],
     p_filt: &mut [f64],
     z: &mut [f64],
+    (arrival, loglik): (&mut [f64], &mut [f64]),
 ) -> FirstFailure {
     let model = inp.model;
     let d = model.dims;
@@ -204,7 +217,22 @@ fn update_range<K: LocalKernel>(
             p: if inp.known { 1.0 } else { window.p[i] },
             known: inp.known,
         };
-        if let Some((gain, p_shared)) = inp.shared {
+        if inp.mixture {
+            let meas = nahi::Measurement {
+                j: &prm.J,
+                m: &prm.M,
+                y: data.y,
+                ru: data.ru,
+                p: data.p,
+                known: false,
+            };
+            let x_pred = &inp.x_pred[vi.clone()];
+            let t_pred = &inp.t_pred[nn.clone()];
+            match nahi::mixture_update(&meas, x_pred, t_pred, xf, pf, &mut wk.mixture) {
+                Some(a) => (arrival[k], loglik[k]) = (a.probability, a.loglik),
+                None => return Some(i),
+            }
+        } else if let Some((gain, p_shared)) = inp.shared {
             K::mean_update(gain, &data, &inp.x_pred[vi.clone()], xf);
             pf.copy_from_slice(p_shared);
         } else {
@@ -419,6 +447,15 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         } else {
             None
         };
+        if opts.update == Update::Mixture && opts.dropouts == Dropouts::Known {
+            return Err(Error::Usage(
+                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
+            ));
+        }
+        let mixture_buffer = || match opts.update {
+            Update::Mixture => vec![0.0; big_n],
+            Update::Linear => Vec::new(),
+        };
         let worker = Worker::<K>::new(model);
         let gain = worker.kernel.new_gain();
         Ok(Self {
@@ -443,6 +480,8 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
             solve_scratch: Vec::with_capacity(big_n * d.s()),
             workers: vec![worker; big_n.div_ceil(CHUNK).max(1)],
             solver_error,
+            arrival: mixture_buffer(),
+            loglik: mixture_buffer(),
         })
     }
 
@@ -517,6 +556,7 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
             model,
             t,
             known,
+            mixture: self.opts.update == Update::Mixture,
             second_moment: self.opts.second_moment,
             from_predicted: self.opts.interconnect_from == InterconnectFrom::Predicted,
             lifted: self.lifted.as_ref().map(|(_, mom)| mom),
@@ -539,8 +579,12 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 .zip(self.x_filt.par_chunks_mut(CHUNK * n))
                 .zip(self.p_filt.par_chunks_mut(CHUNK * n * n))
                 .zip(par_chunks_or_empty(&mut self.z, CHUNK * s, chunks))
+                .zip(par_chunks_or_empty(&mut self.arrival, CHUNK, chunks))
+                .zip(par_chunks_or_empty(&mut self.loglik, CHUNK, chunks))
                 .enumerate()
-                .filter_map(|(c, (((wk, xf), pf), z))| update_range(&inp, wk, c * CHUNK, xf, pf, z))
+                .filter_map(|(c, (((((wk, xf), pf), z), a), l))| {
+                    update_range(&inp, wk, c * CHUNK, xf, pf, z, (a, l))
+                })
                 .min()
         } else {
             update_range(
@@ -550,6 +594,7 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 &mut self.x_filt,
                 &mut self.p_filt,
                 &mut self.z,
+                (&mut self.arrival, &mut self.loglik),
             )
         };
         if let Some(i) = failed {
@@ -650,5 +695,9 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
 
     fn solver_error_estimate(&self) -> f64 {
         self.solver_error
+    }
+
+    fn arrival(&self) -> Option<&[f64]> {
+        (self.opts.update == Update::Mixture).then_some(self.arrival.as_slice())
     }
 }
