@@ -505,7 +505,19 @@ fn mixture_filter_beats_the_linear_filter_on_the_shipped_chains() {
         let mut linear = TwoStepFilter::new(&model, TwoStepOptions::default()).unwrap();
         let (mixture, linear) = (rmse(&mut mixture_filter(&model)), rmse(&mut linear));
         eprintln!(
-            "{name}: RMSE mixture {mixture:.4e}, linear {linear:.4e}, ratio {:.3}",
+            "{name}: distributed RMSE mixture {mixture:.4e}, linear {linear:.4e}, ratio {:.3}",
+            mixture / linear
+        );
+        assert!(
+            mixture < linear,
+            "{name}: mixture {mixture} vs linear {linear}"
+        );
+
+        let central = || CentralizedFilter::new(&model, false, 1000).unwrap();
+        let mixture = rmse(&mut central().with_mixture_update().unwrap());
+        let linear = rmse(&mut central());
+        eprintln!(
+            "{name}: centralized RMSE mixture {mixture:.4e}, linear {linear:.4e}, ratio {:.3}",
             mixture / linear
         );
         assert!(
@@ -513,4 +525,52 @@ fn mixture_filter_beats_the_linear_filter_on_the_shipped_chains() {
             "{name}: mixture {mixture} vs linear {linear}"
         );
     }
+}
+
+/// The centralized mixture filter: for one subsystem it is the distributed one (no
+/// interconnection), and at `p = 1` on a chain it is the centralized Kalman filter, i.e. the
+/// linear filter at `p = 1` (1e−10).
+#[test]
+fn centralized_mixture_filter_for_one_subsystem_and_at_p_one() {
+    let single = model_from(SINGLE);
+    let chain = model_from(CHAIN).with_arrival_probability(1.0);
+    for (model, seed) in [(&single, 4), (&chain, 6)] {
+        let run = simulate_run(model, seed);
+        let mut central = CentralizedFilter::new(model, false, 100)
+            .unwrap()
+            .with_mixture_update()
+            .unwrap();
+        let mut other: Box<dyn ChainFilter> = if model.subsystems == 1 {
+            Box::new(mixture_filter(model))
+        } else {
+            Box::new(CentralizedFilter::new(model, false, 100).unwrap())
+        };
+        for (t, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
+            central.step(y, u).unwrap();
+            other.step(y, u).unwrap();
+            let (a, b) = (central.arrival().unwrap(), other.arrival());
+            if let Some(b) = b {
+                assert!((a[0] - b[0]).abs() < 1e-10, "t = {}: π", t + 1);
+            }
+            for (x, z) in [
+                (central.filtered(), other.filtered()),
+                (central.predicted(), other.predicted()),
+            ] {
+                for (g, w) in x.0.iter().zip(z.0).chain(x.1.iter().zip(z.1)) {
+                    assert!(
+                        (g - w).abs() < 1e-10,
+                        "N = {}, t = {}",
+                        model.subsystems,
+                        t + 1
+                    );
+                }
+            }
+        }
+    }
+    assert!(
+        CentralizedFilter::new(&single, true, 100)
+            .unwrap()
+            .with_mixture_update()
+            .is_err()
+    );
 }

@@ -6,7 +6,7 @@
 //! ordinary Kalman filter of the lifted system on the observed rows. `O((Nn)³)` per step: a
 //! yardstick for the distributed filter, not the default.
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorViewMut};
 
 use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
@@ -34,6 +34,9 @@ pub struct CentralizedFilter<'m> {
     /// Per-subsystem diagonal blocks of the last output, `N·n²` values.
     block_filt: Vec<f64>,
     block_pred: Vec<f64>,
+    /// With the mixture update (docs/theory.md §10): `π(t, i)` of the last step, and the
+    /// workspace of one subsystem's pseudo-measurement.
+    mixture: Option<(Vec<f64>, Workspace)>,
 }
 
 impl<'m> CentralizedFilter<'m> {
@@ -66,7 +69,98 @@ impl<'m> CentralizedFilter<'m> {
             js: DMatrix::zeros(d.q, n),
             block_filt: vec![0.0; big_n * n * n],
             block_pred: vec![0.0; big_n * n * n],
+            mixture: None,
         })
+    }
+
+    /// The same filter with the mixture update of docs/theory.md §10 in place of Nahi's: each
+    /// subsystem's pseudo-measurement `(W_i, r_i)` from its marginal, then all at once in
+    /// covariance form, `G = I + 𝒲 𝒥 T 𝒥ᵀ`, `X̂(t|t) = X̂ + T 𝒥ᵀ G⁻¹ r`,
+    /// `P(t|t) = T − T 𝒥ᵀ G⁻¹ 𝒲 𝒥 T`. Unknown dropouts only.
+    pub fn with_mixture_update(mut self) -> Result<Self> {
+        if self.known {
+            return Err(Error::Usage(
+                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
+            ));
+        }
+        let d = self.model.dims;
+        self.mixture = Some((vec![0.0; self.model.subsystems], Workspace::new(d.n, d.q)));
+        Ok(self)
+    }
+
+    /// The mixture update of step `t` into `x_filt`, `p_filt` and the arrival
+    /// probabilities.
+    fn mixture_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let d = model.dims;
+        let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
+        let size = big_n * n;
+        let Some((arrival, ws)) = self.mixture.as_mut() else {
+            return Ok(());
+        };
+        let window = model.window(t);
+        let mut w_big = DMatrix::zeros(big_n * q, big_n * q);
+        let mut j_big = DMatrix::zeros(big_n * q, size);
+        let mut r = DVector::zeros(big_n * q);
+        let (mut w_i, mut r_i, mut ru) = (vec![0.0; q * q], vec![0.0; q], vec![0.0; q]);
+        let mut sigma_ii = vec![0.0; n * n];
+        for i in 0..big_n {
+            let prm = model.param_set(window.ids[i]);
+            for c in 0..n {
+                for row in 0..n {
+                    sigma_ii[c * n + row] = self.t_pred[(i * n + c) * size + i * n + row];
+                }
+            }
+            ru.fill(0.0);
+            crate::linalg::mat_vec_add(&mut ru, &prm.R, &u[i * m..(i + 1) * m]);
+            let meas = nahi::Measurement {
+                j: &prm.J,
+                m: &prm.M,
+                y: &y[i * q..(i + 1) * q],
+                ru: &ru,
+                p: window.p[i],
+                known: false,
+            };
+            let x_i = &self.x_pred[i * n..(i + 1) * n];
+            let Some(a) =
+                nahi::mixture_pseudo_measurement(&meas, x_i, &sigma_ii, &mut w_i, &mut r_i, ws)
+            else {
+                return Err(Error::Numerical {
+                    t,
+                    i: i + 1,
+                    msg: "the mixture update's J T Jᵀ + M is not positive definite".into(),
+                });
+            };
+            arrival[i] = a.probability;
+            w_big.view_mut((i * q, i * q), (q, q)).copy_from_slice(&w_i);
+            j_big.view_mut((i * q, i * n), (q, n)).copy_from(&prm.J);
+            r.rows_mut(i * q, q).copy_from_slice(&r_i);
+        }
+        let t_mat = DMatrixView::from_slice(&self.t_pred, size, size);
+        let jt = &j_big * t_mat;
+        let w_jt = &w_big * &jt;
+        let lu = (DMatrix::identity(big_n * q, big_n * q) + &w_jt * j_big.transpose()).lu();
+        let not_invertible = || Error::Numerical {
+            t,
+            i: 0,
+            msg: "the centralized mixture update's I + 𝒲 𝒥 T 𝒥ᵀ is singular".into(),
+        };
+        let z = lu.solve(&r).ok_or_else(not_invertible)?;
+        let gain = lu.solve(&w_jt).ok_or_else(not_invertible)?;
+        let mut xf = DVectorViewMut::from_slice(&mut self.x_filt, size);
+        xf.copy_from_slice(&self.x_pred);
+        xf.gemv_tr(1.0, &jt, &z, 1.0);
+        let mut pf = DMatrixViewMut::from_slice(&mut self.p_filt, size, size);
+        pf.copy_from(&t_mat);
+        pf.gemm_tr(-1.0, &jt, &gain, 1.0);
+        for c in 0..size {
+            for row in 0..c {
+                let v = 0.5 * (pf[(row, c)] + pf[(c, row)]);
+                pf[(row, c)] = v;
+                pf[(c, row)] = v;
+            }
+        }
+        Ok(())
     }
 
     /// The whole `P(t|t)` of the last step (`Nn × Nn`, column-major), for the smoother.
@@ -84,25 +178,11 @@ impl<'m> CentralizedFilter<'m> {
         &self.sys
     }
 
-    fn diagonal_blocks(cov: &[f64], size: usize, n: usize, out: &mut [f64]) {
-        for i in 0..size / n {
-            for c in 0..n {
-                for r in 0..n {
-                    out[i * n * n + c * n + r] = cov[(i * n + c) * size + i * n + r];
-                }
-            }
-        }
-    }
-}
-
-impl ChainFilter for CentralizedFilter<'_> {
-    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+    /// Nahi's update of step `t` on the lifted system (docs/theory.md §7).
+    fn linear_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
         let model = self.model;
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
-        let size = big_n * n;
-        let t = self.t;
-        self.sys.prepare(model, t)?;
         let window = model.window(t);
         {
             let (h, reff, innov) = self.ws.measurement_mut();
@@ -156,6 +236,33 @@ impl ChainFilter for CentralizedFilter<'_> {
                     .into(),
             });
         }
+        Ok(())
+    }
+
+    fn diagonal_blocks(cov: &[f64], size: usize, n: usize, out: &mut [f64]) {
+        for i in 0..size / n {
+            for c in 0..n {
+                for r in 0..n {
+                    out[i * n * n + c * n + r] = cov[(i * n + c) * size + i * n + r];
+                }
+            }
+        }
+    }
+}
+
+impl ChainFilter for CentralizedFilter<'_> {
+    fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        let model = self.model;
+        let d = model.dims;
+        let (n, big_n) = (d.n, model.subsystems);
+        let size = big_n * n;
+        let t = self.t;
+        self.sys.prepare(model, t)?;
+        if self.mixture.is_some() {
+            self.mixture_update(t, y, u)?;
+        } else {
+            self.linear_update(t, y, u)?;
+        }
         // Predict: X̂⁺ = A_eff X̂(t|t) + U_eff U, T⁺ = A_eff P A_effᵀ + Q_big.
         {
             let mut xp = nalgebra::DVectorViewMut::from_slice(&mut self.x_pred, size);
@@ -189,6 +296,10 @@ impl ChainFilter for CentralizedFilter<'_> {
 
     fn predicted(&self) -> (&[f64], &[f64]) {
         (&self.x_pred, &self.block_pred)
+    }
+
+    fn arrival(&self) -> Option<&[f64]> {
+        self.mixture.as_ref().map(|(a, _)| a.as_slice())
     }
 }
 

@@ -86,6 +86,15 @@ pub struct Workspace {
     innov: DVector<f64>,
     /// A second `q`-vector: the mixture update's `y − R u`.
     noise: DVector<f64>,
+    /// The mixture pseudo-measurement's `J Σ Jᵀ`, `S₁`, `S₁⁻¹`, `X`, `I − Jp X` (`q × q`) and
+    /// the discarded covariance-form estimates (`n`, `n²`).
+    jp: DMatrix<f64>,
+    s1: DMatrix<f64>,
+    qq: DMatrix<f64>,
+    x_mix: DMatrix<f64>,
+    a_mix: DMatrix<f64>,
+    x_scratch: Vec<f64>,
+    p_scratch: Vec<f64>,
 }
 
 impl Workspace {
@@ -106,6 +115,13 @@ impl Workspace {
             nn: DMatrix::zeros(n, n),
             innov: DVector::zeros(q),
             noise: DVector::zeros(q),
+            jp: DMatrix::zeros(q, q),
+            s1: DMatrix::zeros(q, q),
+            qq: DMatrix::zeros(q, q),
+            x_mix: DMatrix::zeros(q, q),
+            a_mix: DMatrix::zeros(q, q),
+            x_scratch: vec![0.0; n],
+            p_scratch: vec![0.0; n * n],
         }
     }
 
@@ -364,6 +380,79 @@ pub fn mixture_update(
     })
 }
 
+/// The mixture update of one subsystem as a pseudo-measurement, for the filters that update
+/// the whole chain at once (docs/theory.md §10): from the prior marginal `N(x̂, Σ)` of the
+/// subsystem (`Σ` its `n × n` block, column-major), writes `W` (`q × q`, column-major,
+/// symmetric, possibly indefinite) and `r` (`q`) such that adding `Jᵀ W J` to the chain's
+/// precision and `Jᵀ r` to its information vector is the update of [`mixture_update`]:
+///
+/// ```text
+/// Jp = J Σ Jᵀ,  S₁ = Jp + M,  C = π S₁ − π(1−π) e eᵀ,  X = S₁⁻¹ C S₁⁻¹
+/// W  = X (I − Jp X)⁻¹,   r = π (I + W Jp) S₁⁻¹ e
+/// ```
+///
+/// `I − Jp X` is invertible since `C ≤ S₁`. Returns `None` when `S₁` or `M` is not positive
+/// definite.
+pub fn mixture_pseudo_measurement(
+    meas: &Measurement,
+    x_pred: &[f64],
+    sigma: &[f64],
+    w_out: &mut [f64],
+    r_out: &mut [f64],
+    ws: &mut Workspace,
+) -> Option<Arrival> {
+    let (q, n) = ws.h.shape();
+    // The covariance form on a scratch copy gives π, the log density and S₁⁻¹ e (in `w`).
+    let arrival = {
+        let (mut x_scratch, mut p_scratch) = (
+            std::mem::take(&mut ws.x_scratch),
+            std::mem::take(&mut ws.p_scratch),
+        );
+        let a = mixture_update(meas, x_pred, sigma, &mut x_scratch, &mut p_scratch, ws);
+        (ws.x_scratch, ws.p_scratch) = (x_scratch, p_scratch);
+        a?
+    };
+    let pi = arrival.probability;
+    // Jp and S₁ (`ws.ht` = J Σ from the covariance form).
+    ws.jp.gemm(1.0, &ws.ht, &ws.h_tr, 0.0);
+    ws.s1.copy_from(&ws.jp);
+    ws.s1 += meas.m;
+    // u = S₁⁻¹ e and S₁⁻¹, by Cholesky.
+    for k in 0..q {
+        let mut jx = 0.0;
+        for c in 0..n {
+            jx += meas.j[(k, c)] * x_pred[c];
+        }
+        ws.innov[k] = meas.y[k] - meas.ru[k] - jx;
+    }
+    let s1 = std::mem::replace(&mut ws.s1, DMatrix::zeros(0, 0));
+    let chol = Cholesky::new(s1)?;
+    chol.solve_mut(&mut ws.innov);
+    ws.qq.fill_with_identity();
+    chol.solve_mut(&mut ws.qq);
+    ws.s1 = chol.unpack();
+    // X = π S₁⁻¹ − π(1−π) u uᵀ, then Aᵀ W = X with A = I − Jp X (W is symmetric).
+    ws.x_mix.copy_from(&ws.qq);
+    ws.x_mix.scale_mut(pi);
+    ws.x_mix.ger(-pi * (1.0 - pi), &ws.innov, &ws.innov, 1.0);
+    ws.a_mix.fill_with_identity();
+    ws.a_mix.gemm(-1.0, &ws.jp, &ws.x_mix, 1.0);
+    let lu = ws.a_mix.transpose().lu();
+    let mut w = DMatrixViewMut::from_slice(w_out, q, q);
+    w.copy_from(&ws.x_mix);
+    if !lu.solve_mut(&mut w) {
+        return None;
+    }
+    symmetrize(&mut w);
+    // r = π (u + W Jp u).
+    let jp_u = &ws.jp * &ws.innov;
+    let mut r = nalgebra::DVectorViewMut::from_slice(r_out, q);
+    r.copy_from(&ws.innov);
+    r.gemv(1.0, &w, &jp_u, 1.0);
+    r.scale_mut(pi);
+    Some(arrival)
+}
+
 /// `out = F X Fᵀ + Q` (symmetrised), for the covariance predictions.
 pub fn propagate_cov(
     f: &DMatrix<f64>,
@@ -618,5 +707,52 @@ mod tests {
         let (mut xf, mut pf) = (vec![0.0; 3], vec![0.0; 9]);
         let mut ws = Workspace::new(3, 2);
         assert!(mixture_update(&meas, &x, t.as_slice(), &mut xf, &mut pf, &mut ws).is_none());
+    }
+
+    /// The pseudo-measurement `(W, r)` applied in covariance form, `G = I + W J Σ Jᵀ`,
+    /// `x̂⁺ = x̂ + Σ Jᵀ G⁻¹ r`, `Σ⁺ = Σ − Σ Jᵀ G⁻¹ W J Σ` (dense inverse here), is the mixture
+    /// update, also where `W` is indefinite.
+    #[test]
+    fn mixture_pseudo_measurement_is_the_mixture_update() {
+        let MixtureCase { j, m, t, x, ru } = mixture_case();
+        let mut ws = Workspace::new(3, 2);
+        let mut indefinite = 0;
+        for (y, p) in [
+            ([0.15, 1.2], 0.5),
+            ([0.0, 3.6], 0.7),
+            ([0.15, -0.05], 0.9),
+            ([0.5, 3.0], 0.2),
+            ([0.1, 4.2], 1.0),
+        ] {
+            let meas = Measurement {
+                j: &j,
+                m: &m,
+                y: &y,
+                ru: &ru,
+                p,
+                known: false,
+            };
+            let (mut w, mut r) = (vec![0.0; 4], vec![0.0; 2]);
+            let a = mixture_pseudo_measurement(&meas, &x, t.as_slice(), &mut w, &mut r, &mut ws)
+                .unwrap();
+            let w = DMatrix::from_column_slice(2, 2, &w);
+            let r = DVector::from_column_slice(&r);
+            indefinite += usize::from(w.symmetric_eigenvalues().min() < 0.0);
+            let g = DMatrix::identity(2, 2) + &w * &j * &t * j.transpose();
+            let g_inv = g.try_inverse().unwrap();
+            let x_info = DVector::from_column_slice(&x) + &t * j.transpose() * &g_inv * &r;
+            let p_info = &t - &t * j.transpose() * &g_inv * &w * &j * &t;
+
+            let (mut xf, mut pf) = (vec![0.0; 3], vec![0.0; 9]);
+            let b = mixture_update(&meas, &x, t.as_slice(), &mut xf, &mut pf, &mut ws).unwrap();
+            assert_eq!(a, b, "{y:?}");
+            for (got, want) in x_info.iter().zip(&xf).chain(p_info.iter().zip(&pf)) {
+                assert!(
+                    (got - want).abs() < 1e-11,
+                    "{y:?}: {x_info} {p_info} vs {xf:?} {pf:?}"
+                );
+            }
+        }
+        assert!(indefinite > 0, "no case with an indefinite W");
     }
 }
