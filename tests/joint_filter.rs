@@ -6,7 +6,7 @@
 mod common;
 use common::{Sub, dense_a_eff, model_from, shipped_model, simulate_run};
 use sisfilt::filter::{
-    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
+    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment, Update,
 };
 use sisfilt::interconnect::ChainSolver;
 use sisfilt::lifted::a_eff_band;
@@ -216,6 +216,58 @@ fn full_band_equals_centralized_filter() {
                 gap.x,
                 gap.p
             );
+        }
+    }
+}
+
+/// With the mixture update (docs/theory.md §10), `--band N−1 --band-tol 0 --loading 0` is the
+/// centralized mixture filter (1e−9): the pseudo-measurements `Jᵀ W_i J` in the information
+/// form against the same in covariance form, on every shipped config and on chains with
+/// overrides and inputs; every step's arrival probabilities agree too.
+#[test]
+fn full_band_mixture_equals_centralized_mixture_filter() {
+    let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
+        .iter()
+        .map(|name| (name.to_string(), shipped_model(name)))
+        .collect();
+    for big_n in [1, 2, 7] {
+        models.push((format!("chain N = {big_n}"), model_from(&chain_with(big_n))));
+    }
+    for (name, model) in &models {
+        let steps = 30.min(model.steps);
+        let opts = JointOptions {
+            update: Update::Mixture,
+            ..full_band(model, SecondMoment::Band, Dropouts::Unknown)
+        };
+        let mut joint = JointFilter::new(model, opts).unwrap();
+        let mut cent = CentralizedFilter::new(model, false, 1000)
+            .unwrap()
+            .with_mixture_update()
+            .unwrap();
+        let run = simulate_run(model, 9);
+        for (t, (y, u)) in run.y.iter().zip(&run.u).take(steps).enumerate() {
+            joint.step(y, u).unwrap();
+            cent.step(y, u).unwrap();
+            let (a, b) = (joint.arrival().unwrap(), cent.arrival().unwrap());
+            for (g, w) in a.iter().zip(b) {
+                assert!((g - w).abs() < 1e-9, "{name}, t = {}: π {g} vs {w}", t + 1);
+            }
+            for (x, z) in [
+                (joint.filtered(), cent.filtered()),
+                (joint.predicted(), cent.predicted()),
+            ] {
+                let scale = z.1.iter().fold(1.0_f64, |m, v| m.max(v.abs()));
+                for (g, w) in x.0.iter().zip(z.0) {
+                    assert!(
+                        (g - w).abs() < 1e-9 * scale.max(w.abs()),
+                        "{name}, t = {}: x̂",
+                        t + 1
+                    );
+                }
+                for (g, w) in x.1.iter().zip(z.1) {
+                    assert!((g - w).abs() < 1e-9 * scale, "{name}, t = {}: P", t + 1);
+                }
+            }
         }
     }
 }

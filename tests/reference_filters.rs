@@ -8,7 +8,8 @@ use nalgebra::{DMatrix, DVector};
 use sisfilt::choice::Choice;
 use sisfilt::evaluate::{EvaluateOptions, evaluate};
 use sisfilt::filter::{
-    CentralizedFilter, ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions, Update,
+    CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
+    TwoStepFilter, TwoStepOptions, Update,
 };
 use sisfilt::lifted::{LiftedMoments, LiftedSystem};
 use sisfilt::model::Model;
@@ -506,6 +507,24 @@ fn mixture_filter_beats_the_linear_filter_on_the_shipped_chains() {
         let (mixture, linear) = (rmse(&mut mixture_filter(&model)), rmse(&mut linear));
         eprintln!(
             "{name}: distributed RMSE mixture {mixture:.4e}, linear {linear:.4e}, ratio {:.3}",
+            mixture / linear
+        );
+        assert!(
+            mixture < linear,
+            "{name}: mixture {mixture} vs linear {linear}"
+        );
+
+        let joint = |update| {
+            let opts = JointOptions {
+                update,
+                ..JointOptions::default()
+            };
+            JointFilter::new(&model, opts).unwrap()
+        };
+        let mixture = rmse(&mut joint(Update::Mixture));
+        let linear = rmse(&mut joint(Update::Linear));
+        eprintln!(
+            "{name}: joint RMSE mixture {mixture:.4e}, linear {linear:.4e}, ratio {:.3}",
             mixture / linear
         );
         assert!(

@@ -703,6 +703,7 @@ fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
         loading: args.loading,
         second_moment,
         dropouts: args.dropouts,
+        ..defaults
     }))
 }
 

@@ -27,7 +27,7 @@ use crate::band::{
     completion_precision, sandwich,
 };
 use crate::error::{Error, Result};
-use crate::filter::{ChainFilter, Dropouts, SecondMoment, nahi};
+use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedMoments, LiftedSystem, LiftedWorkspace, a_eff_band, propagate_mean};
 use crate::linalg::mat_vec_add;
@@ -52,6 +52,8 @@ pub struct JointOptions {
     /// `band` (default), `lifted` or `local`.
     pub second_moment: SecondMoment,
     pub dropouts: Dropouts,
+    /// `mixture` (docs/theory.md §10) needs unknown dropouts and no second moment.
+    pub update: Update,
 }
 
 impl Default for JointOptions {
@@ -62,6 +64,7 @@ impl Default for JointOptions {
             loading: None,
             second_moment: SecondMoment::Band,
             dropouts: Dropouts::Unknown,
+            update: Update::Linear,
         }
     }
 }
@@ -76,6 +79,7 @@ impl JointOptions {
             loading: None,
             second_moment,
             dropouts,
+            update: Update::Linear,
         }
     }
 
@@ -315,6 +319,16 @@ fn initial_band(model: &Model, k: usize) -> SymBand {
     p
 }
 
+/// The mixture update's state (docs/theory.md §10): `π(t, i)` of the last step and one
+/// subsystem's pseudo-measurement `(W, r)`, `R u` and scratch.
+struct Mixture {
+    arrival: Vec<f64>,
+    w: Vec<f64>,
+    r: Vec<f64>,
+    ru: Vec<f64>,
+    ws: Box<nahi::Workspace>,
+}
+
 /// The joint band-k filter's state between time steps.
 pub struct JointFilter<'m> {
     model: &'m Model,
@@ -342,6 +356,8 @@ pub struct JointFilter<'m> {
     mean_scratch: Vec<f64>,
     block_filt: Vec<f64>,
     block_pred: Vec<f64>,
+    /// The mixture update's arrival probabilities and scratch (`--update mixture`).
+    mixture: Option<Mixture>,
     /// When recording a [`JointSchedule`]: every subsystem's `R_i⁻¹ H_i` of the last step.
     recorded_gains: Option<Vec<f64>>,
     /// For the smoother (docs/theory.md §9): `Λ⁻(t)` and `Λ⁺(t)` of the last step.
@@ -353,6 +369,12 @@ impl<'m> JointFilter<'m> {
     pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
         let known = opts.dropouts == Dropouts::Known;
+        let mixture = opts.update == Update::Mixture;
+        if mixture && known {
+            return Err(Error::Usage(
+                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
+            ));
+        }
         if !opts.band_tol.is_finite() || opts.band_tol < 0.0 {
             return Err(Error::Usage(format!(
                 "--band-tol {}: expected a finite number ≥ 0",
@@ -370,7 +392,8 @@ impl<'m> JointFilter<'m> {
         let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
         let w = (k + 2 * a_eff.half_width()).min(big_n - 1);
         let mean: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
-        let moments = match (known, opts.second_moment) {
+        // Neither the known-dropout nor the mixture update uses the second moment.
+        let moments = match (known || mixture, opts.second_moment) {
             (true, _) => Moments::None,
             (false, SecondMoment::Band) => Moments::Band {
                 mean: mean.clone(),
@@ -424,6 +447,13 @@ impl<'m> JointFilter<'m> {
             block_pred,
             recorded_gains: None,
             kept_precisions: None,
+            mixture: mixture.then(|| Mixture {
+                arrival: vec![0.0; big_n],
+                w: vec![0.0; q * q],
+                r: vec![0.0; q],
+                ru: vec![0.0; q],
+                ws: Box::new(nahi::Workspace::new(n, q)),
+            }),
         })
     }
 
@@ -467,6 +497,56 @@ impl<'m> JointFilter<'m> {
         let model = self.model;
         let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
         let window = model.window(self.t);
+        if let Some(mix) = &mut self.mixture {
+            // The mixture update's pseudo-measurements (docs/theory.md §10): Φ_i = Jᵀ W_i J
+            // and Jᵀ r_i, from each subsystem's marginal of the loaded prior band.
+            for i in 0..model.subsystems {
+                let prm = model.param_set(window.ids[i]);
+                mix.ru.fill(0.0);
+                crate::linalg::mat_vec_add(&mut mix.ru, &prm.R, &u[i * m..(i + 1) * m]);
+                let meas = nahi::Measurement {
+                    j: &prm.J,
+                    m: &prm.M,
+                    y: &y[i * q..(i + 1) * q],
+                    ru: &mix.ru,
+                    p: window.p[i],
+                    known: false,
+                };
+                let x_i = &self.x_pred[i * n..(i + 1) * n];
+                let Some(a) = nahi::mixture_pseudo_measurement(
+                    &meas,
+                    x_i,
+                    self.p_pred.block(i, 0),
+                    &mut mix.w,
+                    &mut mix.r,
+                    &mut mix.ws,
+                ) else {
+                    return Err(Error::Numerical {
+                        t: self.t,
+                        i: i + 1,
+                        msg:
+                            "joint filter: the mixture update's J Σ Jᵀ + M is not positive definite"
+                                .into(),
+                    });
+                };
+                mix.arrival[i] = a.probability;
+                let phi = self.lambda.block_mut(i, 0);
+                let r = &mut self.r[i * n..(i + 1) * n];
+                for c in 0..n {
+                    let mut rc = 0.0;
+                    for k in 0..q {
+                        rc += prm.J[(k, c)] * mix.r[k];
+                        // (W J)_{k, c}
+                        let wj: f64 = (0..q).map(|l| mix.w[l * q + k] * prm.J[(l, c)]).sum();
+                        for rr in 0..n {
+                            phi[c * n + rr] += prm.J[(k, rr)] * wj;
+                        }
+                    }
+                    r[c] = rc;
+                }
+            }
+            return Ok(());
+        }
         for i in 0..model.subsystems {
             let prm = model.param_set(window.ids[i]);
             let p = if self.known { 1.0 } else { window.p[i] };
@@ -699,6 +779,10 @@ impl ChainFilter for JointFilter<'_> {
 
     fn covariance_band(&self, predicted: bool) -> Option<(&SymBand, usize)> {
         Some((JointFilter::covariance_band(self, predicted), self.k))
+    }
+
+    fn arrival(&self) -> Option<&[f64]> {
+        self.mixture.as_ref().map(|m| m.arrival.as_slice())
     }
 }
 

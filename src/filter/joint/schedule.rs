@@ -4,7 +4,7 @@
 use super::{JointFilter, JointOptions};
 use crate::band::BandCholesky;
 use crate::error::{Error, Result};
-use crate::filter::{ChainFilter, Dropouts, SecondMoment, nahi};
+use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedWorkspace, propagate_mean};
 use crate::model::Model;
@@ -38,9 +38,12 @@ impl<'m> JointSchedule<'m> {
 
     /// Runs the covariance pass for the inputs `u[t]` (`N·m` values per step).
     pub fn new(model: &'m Model, opts: JointOptions, u: &[Vec<f64>]) -> Result<Self> {
-        if opts.dropouts == Dropouts::Known || opts.second_moment == SecondMoment::Local {
+        if opts.dropouts == Dropouts::Known
+            || opts.second_moment == SecondMoment::Local
+            || opts.update == Update::Mixture
+        {
             return Err(Error::Usage(
-                "the joint filter's covariance pass depends on the data in the known-dropout mode and with the local moment".into(),
+                "the joint filter's covariance pass depends on the data in the known-dropout mode, with the local moment and with the mixture update".into(),
             ));
         }
         let mut filter = JointFilter::new(model, opts)?;
