@@ -187,10 +187,9 @@ fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> 
     }
 }
 
-/// `--band N−1 --band-tol 0 --loading 0` is the centralized filter (docs/theory.md §8), with the `band`
-/// and the `lifted` moment, and in the known-dropout mode the lifted Kalman filter.
-#[test]
-fn full_band_equals_centralized_filter() {
+/// The chains the full-band comparisons run on: every shipped config, and chains of 1, 2 and
+/// 7 subsystems with overrides and inputs.
+fn full_band_models() -> Vec<(String, Model)> {
     let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
         .iter()
         .map(|name| (name.to_string(), shipped_model(name)))
@@ -198,6 +197,14 @@ fn full_band_equals_centralized_filter() {
     for big_n in [1, 2, 7] {
         models.push((format!("chain N = {big_n}"), model_from(&chain_with(big_n))));
     }
+    models
+}
+
+/// `--band N−1 --band-tol 0 --loading 0` is the centralized filter (docs/theory.md §8), with the `band`
+/// and the `lifted` moment, and in the known-dropout mode the lifted Kalman filter.
+#[test]
+fn full_band_equals_centralized_filter() {
+    let models = full_band_models();
     for (name, model) in &models {
         // The first 30 steps: long enough to cross every override window of the chain.
         let steps = 30.min(model.steps);
@@ -226,13 +233,7 @@ fn full_band_equals_centralized_filter() {
 /// overrides and inputs; every step's arrival probabilities agree too.
 #[test]
 fn full_band_mixture_equals_centralized_mixture_filter() {
-    let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
-        .iter()
-        .map(|name| (name.to_string(), shipped_model(name)))
-        .collect();
-    for big_n in [1, 2, 7] {
-        models.push((format!("chain N = {big_n}"), model_from(&chain_with(big_n))));
-    }
+    let models = full_band_models();
     for (name, model) in &models {
         let steps = 30.min(model.steps);
         let opts = JointOptions {
