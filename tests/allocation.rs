@@ -163,6 +163,34 @@ fn steps_after_the_first_allocate_nothing() {
         });
     }
 
+    // One subsystem's mixture pseudo-measurement (docs/theory.md §10), as the joint and the
+    // centralized mixture filters call it for every subsystem of every step.
+    {
+        use nalgebra::DMatrix;
+        use sisfilt::filter::nahi::{Measurement, Workspace, mixture_pseudo_measurement};
+        let j = DMatrix::from_row_slice(2, 3, &[1.0, 0.5, 0.0, 0.0, -0.3, 2.0]);
+        let m = DMatrix::from_row_slice(2, 2, &[0.4, 0.1, 0.1, 0.3]);
+        let sigma = [1.2, 0.3, -0.1, 0.3, 0.8, 0.2, -0.1, 0.2, 0.5];
+        let meas = Measurement {
+            j: &j,
+            m: &m,
+            y: &[0.15, 1.2],
+            ru: &[0.2, -0.1],
+            p: 0.5,
+            known: false,
+        };
+        let mut ws = Workspace::new(3, 2);
+        let (mut w, mut r) = ([0.0; 4], [0.0; 2]);
+        let x = [0.4, -1.0, 2.0];
+        mixture_pseudo_measurement(&meas, &x, &sigma, &mut w, &mut r, &mut ws).unwrap();
+        let count = allocations_in(|| {
+            for _ in 0..3 {
+                mixture_pseudo_measurement(&meas, &x, &sigma, &mut w, &mut r, &mut ws).unwrap();
+            }
+        });
+        assert_eq!(count, 0, "mixture pseudo-measurement: {count} allocations");
+    }
+
     // The streaming reader and the estimates writer, one and two threads.
     let (big_n, steps) = (5000, 6);
     let mut csv = String::from("t,i,y1\n");

@@ -86,13 +86,12 @@ pub struct Workspace {
     innov: DVector<f64>,
     /// A second `q`-vector: the mixture update's `y − R u`.
     noise: DVector<f64>,
-    /// The mixture pseudo-measurement's `J Σ Jᵀ`, `S₁`, `S₁⁻¹`, `X`, `I − Jp X` (`q × q`) and
+    /// The mixture pseudo-measurement's `J Σ Jᵀ`, `S₁`, `B` (`q × q`), `Jp S₁⁻¹ e` (`q`) and
     /// the discarded covariance-form estimates (`n`, `n²`).
     jp: DMatrix<f64>,
     s1: DMatrix<f64>,
-    qq: DMatrix<f64>,
-    x_mix: DMatrix<f64>,
-    a_mix: DMatrix<f64>,
+    b: DMatrix<f64>,
+    jp_u: DVector<f64>,
     x_scratch: Vec<f64>,
     p_scratch: Vec<f64>,
 }
@@ -117,9 +116,8 @@ impl Workspace {
             noise: DVector::zeros(q),
             jp: DMatrix::zeros(q, q),
             s1: DMatrix::zeros(q, q),
-            qq: DMatrix::zeros(q, q),
-            x_mix: DMatrix::zeros(q, q),
-            a_mix: DMatrix::zeros(q, q),
+            b: DMatrix::zeros(q, q),
+            jp_u: DVector::zeros(q),
             x_scratch: vec![0.0; n],
             p_scratch: vec![0.0; n * n],
         }
@@ -391,8 +389,11 @@ pub fn mixture_update(
 /// W  = X (I − Jp X)⁻¹,   r = π (I + W Jp) S₁⁻¹ e
 /// ```
 ///
-/// `I − Jp X` is invertible since `C ≤ S₁`. Returns `None` when `S₁` or `M` is not positive
-/// definite.
+/// `W` is computed without inverting anything but two positive definite matrices, from the
+/// rank-one structure of `C`: with `B = (1−π) Jp + M`, `f = B⁻¹ e`,
+/// `D = 1 + (1−π) eᵀ (B⁻¹ − S₁⁻¹) e ≥ 1` (since `B ≤ S₁`),
+/// `W = π B⁻¹ − π(1−π) f fᵀ / D`; `π = 1` gives `M⁻¹`, `π = 0` gives `0`. Allocation-free.
+/// Returns `None` when `S₁` or `M` is not positive definite.
 pub fn mixture_pseudo_measurement(
     meas: &Measurement,
     x_pred: &[f64],
@@ -413,42 +414,46 @@ pub fn mixture_pseudo_measurement(
         a?
     };
     let pi = arrival.probability;
-    // Jp and S₁ (`ws.ht` = J Σ from the covariance form).
+    // Jp and S₁ (`ws.ht` = J Σ from the covariance form), and e (in `noise`).
     ws.jp.gemm(1.0, &ws.ht, &ws.h_tr, 0.0);
     ws.s1.copy_from(&ws.jp);
     ws.s1 += meas.m;
-    // u = S₁⁻¹ e and S₁⁻¹, by Cholesky.
     for k in 0..q {
         let mut jx = 0.0;
         for c in 0..n {
             jx += meas.j[(k, c)] * x_pred[c];
         }
-        ws.innov[k] = meas.y[k] - meas.ru[k] - jx;
+        ws.noise[k] = meas.y[k] - meas.ru[k] - jx;
     }
-    let s1 = std::mem::replace(&mut ws.s1, DMatrix::zeros(0, 0));
-    let chol = Cholesky::new(s1)?;
+    // u = S₁⁻¹ e (in `innov`) and δ = eᵀ u.
+    let chol = Cholesky::new(std::mem::replace(&mut ws.s1, DMatrix::zeros(0, 0)))?;
+    ws.innov.copy_from(&ws.noise);
     chol.solve_mut(&mut ws.innov);
-    ws.qq.fill_with_identity();
-    chol.solve_mut(&mut ws.qq);
     ws.s1 = chol.unpack();
-    // X = π S₁⁻¹ − π(1−π) u uᵀ, then Aᵀ W = X with A = I − Jp X (W is symmetric).
-    ws.x_mix.copy_from(&ws.qq);
-    ws.x_mix.scale_mut(pi);
-    ws.x_mix.ger(-pi * (1.0 - pi), &ws.innov, &ws.innov, 1.0);
-    ws.a_mix.fill_with_identity();
-    ws.a_mix.gemm(-1.0, &ws.jp, &ws.x_mix, 1.0);
-    let lu = ws.a_mix.transpose().lu();
+    let delta = ws.noise.dot(&ws.innov);
+    // B = (1−π) Jp + M = L Lᵀ, ε = eᵀ B⁻¹ e = |L⁻¹ e|², and f = B⁻¹ e (in `noise`).
+    ws.b.copy_from(&ws.jp);
+    ws.b.scale_mut(1.0 - pi);
+    ws.b += meas.m;
+    let chol = Cholesky::new(std::mem::replace(&mut ws.b, DMatrix::zeros(0, 0)))?;
+    ws.b = chol.unpack();
+    ws.b.solve_lower_triangular_mut(&mut ws.noise);
+    let eps = ws.noise.norm_squared();
+    ws.b.tr_solve_lower_triangular_mut(&mut ws.noise);
+    // W = π B⁻¹ − π(1−π) f fᵀ / D.
     let mut w = DMatrixViewMut::from_slice(w_out, q, q);
-    w.copy_from(&ws.x_mix);
-    if !lu.solve_mut(&mut w) {
-        return None;
-    }
+    w.fill_with_identity();
+    ws.b.solve_lower_triangular_mut(&mut w);
+    ws.b.tr_solve_lower_triangular_mut(&mut w);
+    w.scale_mut(pi);
+    let d = 1.0 + (1.0 - pi) * (eps - delta);
+    w.ger(-pi * (1.0 - pi) / d, &ws.noise, &ws.noise, 1.0);
     symmetrize(&mut w);
     // r = π (u + W Jp u).
-    let jp_u = &ws.jp * &ws.innov;
+    ws.jp_u.gemv(1.0, &ws.jp, &ws.innov, 0.0);
     let mut r = nalgebra::DVectorViewMut::from_slice(r_out, q);
     r.copy_from(&ws.innov);
-    r.gemv(1.0, &w, &jp_u, 1.0);
+    r.gemv(1.0, &w, &ws.jp_u, 1.0);
     r.scale_mut(pi);
     Some(arrival)
 }
