@@ -15,12 +15,19 @@ pub trait Choice: Copy + PartialEq + Send + Sync + 'static {
     /// Every value, in the order they are offered.
     const VARIANTS: &'static [Variant<Self>];
 
+    /// The value's entry in [`Choice::VARIANTS`].
+    fn variant(self) -> Option<&'static Variant<Self>> {
+        Self::VARIANTS.iter().find(|v| v.value == self)
+    }
+
     /// The value's name (the same as its serialized form).
     fn name(self) -> &'static str {
-        Self::VARIANTS
-            .iter()
-            .find(|v| v.value == self)
-            .map_or("", |v| v.name)
+        self.variant().map_or("", |v| v.name)
+    }
+
+    /// What the value means.
+    fn help(self) -> &'static str {
+        self.variant().map_or("", |v| v.help)
     }
 
     /// The value called `name`, if any.

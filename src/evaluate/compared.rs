@@ -80,10 +80,7 @@ impl Compared {
 
     /// Its line in the description that ends the table.
     pub fn description(self) -> &'static str {
-        Self::VARIANTS
-            .iter()
-            .find(|v| v.value == self)
-            .map_or("", |v| v.help)
+        self.help()
     }
 
     /// For a smoother, the filter whose estimates it smooths.

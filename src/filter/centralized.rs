@@ -103,14 +103,11 @@ impl<'m> CentralizedFilter<'m> {
         let mut j_big = DMatrix::zeros(big_n * q, size);
         let mut r = DVector::zeros(big_n * q);
         let (mut w_i, mut r_i, mut ru) = (vec![0.0; q * q], vec![0.0; q], vec![0.0; q]);
-        let mut sigma_ii = vec![0.0; n * n];
+        // The marginals of T(t); `block_pred` is rewritten by the prediction.
+        Self::diagonal_blocks(&self.t_pred, size, n, &mut self.block_pred);
         for i in 0..big_n {
             let prm = model.param_set(window.ids[i]);
-            for c in 0..n {
-                for row in 0..n {
-                    sigma_ii[c * n + row] = self.t_pred[(i * n + c) * size + i * n + row];
-                }
-            }
+            let sigma_ii = &self.block_pred[i * n * n..(i + 1) * n * n];
             ru.fill(0.0);
             crate::linalg::mat_vec_add(&mut ru, &prm.R, &u[i * m..(i + 1) * m]);
             let meas = nahi::Measurement {
@@ -123,7 +120,7 @@ impl<'m> CentralizedFilter<'m> {
             };
             let x_i = &self.x_pred[i * n..(i + 1) * n];
             let Some(a) =
-                nahi::mixture_pseudo_measurement(&meas, x_i, &sigma_ii, &mut w_i, &mut r_i, ws)
+                nahi::mixture_pseudo_measurement(&meas, x_i, sigma_ii, &mut w_i, &mut r_i, ws)
             else {
                 return Err(Error::Numerical {
                     t,
@@ -153,13 +150,7 @@ impl<'m> CentralizedFilter<'m> {
         let mut pf = DMatrixViewMut::from_slice(&mut self.p_filt, size, size);
         pf.copy_from(&t_mat);
         pf.gemm_tr(-1.0, &jt, &gain, 1.0);
-        for c in 0..size {
-            for row in 0..c {
-                let v = 0.5 * (pf[(row, c)] + pf[(c, row)]);
-                pf[(row, c)] = v;
-                pf[(c, row)] = v;
-            }
-        }
+        nahi::symmetrize(&mut pf);
         Ok(())
     }
 

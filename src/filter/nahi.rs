@@ -86,14 +86,10 @@ pub struct Workspace {
     innov: DVector<f64>,
     /// A second `q`-vector: the mixture update's `y − R u`.
     noise: DVector<f64>,
-    /// The mixture pseudo-measurement's `J Σ Jᵀ`, `S₁`, `B` (`q × q`), `Jp S₁⁻¹ e` (`q`) and
-    /// the discarded covariance-form estimates (`n`, `n²`).
+    /// The mixture pseudo-measurement's `J Σ Jᵀ` and `B` (`q × q`), and `Jp S₁⁻¹ e` (`q`).
     jp: DMatrix<f64>,
-    s1: DMatrix<f64>,
     b: DMatrix<f64>,
     jp_u: DVector<f64>,
-    x_scratch: Vec<f64>,
-    p_scratch: Vec<f64>,
 }
 
 impl Workspace {
@@ -115,11 +111,8 @@ impl Workspace {
             innov: DVector::zeros(q),
             noise: DVector::zeros(q),
             jp: DMatrix::zeros(q, q),
-            s1: DMatrix::zeros(q, q),
             b: DMatrix::zeros(q, q),
             jp_u: DVector::zeros(q),
-            x_scratch: vec![0.0; n],
-            p_scratch: vec![0.0; n * n],
         }
     }
 
@@ -310,9 +303,61 @@ pub fn mixture_update(
     ws: &mut Workspace,
 ) -> Option<Arrival> {
     let (q, n) = ws.h.shape();
+    let arrival = mixture_weights(meas, x_pred, t_pred, ws)?;
+    let pi = arrival.probability;
+    // W = S₁⁻¹ J T = Kᵀ, and g = K e.
+    ws.w.copy_from(&ws.ht);
+    ws.sigma.solve_lower_triangular_mut(&mut ws.w);
+    ws.sigma.tr_solve_lower_triangular_mut(&mut ws.w);
+    for c in 0..n {
+        x_filt[c] = (0..q).map(|k| ws.w[(k, c)] * ws.innov[k]).sum();
+    }
+    let t_mat = DMatrixView::from_slice(t_pred, n, n);
+    let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
+    p_mat.copy_from(&t_mat);
+    p_mat.gemm_tr(-pi, &ws.w, &ws.ht, 1.0);
+    let spread = pi * (1.0 - pi);
+    for c in 0..n {
+        for r in 0..n {
+            p_mat[(r, c)] += spread * x_filt[r] * x_filt[c];
+        }
+    }
+    symmetrize(&mut p_mat);
+    for c in 0..n {
+        x_filt[c] = x_pred[c] + pi * x_filt[c];
+    }
+    Some(arrival)
+}
+
+/// Replaces the positive definite `m` by its lower Cholesky factor; `false` (leaving zeros of
+/// the same size) when it is not positive definite.
+fn factor_in_place(m: &mut DMatrix<f64>) -> bool {
+    let q = m.nrows();
+    match Cholesky::new(std::mem::replace(m, DMatrix::zeros(0, 0))) {
+        Some(chol) => {
+            *m = chol.unpack();
+            true
+        }
+        None => {
+            *m = DMatrix::zeros(q, q);
+            false
+        }
+    }
+}
+
+/// What both forms of the mixture update share: from the prior `N(x̂, T)`, `π` and the log
+/// density, leaving `J T` in `ws.ht`, `Jᵀ` in `ws.h_tr`, the lower Cholesky factor of
+/// `S₁ = J T Jᵀ + M` in `ws.sigma` and `e = y − R u − J x̂` in `ws.innov`. `None` when `S₁` or
+/// `M` is not positive definite.
+fn mixture_weights(
+    meas: &Measurement,
+    x_pred: &[f64],
+    t_pred: &[f64],
+    ws: &mut Workspace,
+) -> Option<Arrival> {
+    let (q, n) = ws.h.shape();
     let p = meas.p;
     let t_mat = DMatrixView::from_slice(t_pred, n, n);
-    // J T, and S₁ = J T Jᵀ + M.
     ws.h.copy_from(meas.j);
     ws.ht.gemm(1.0, &ws.h, &t_mat, 0.0);
     ws.h_tr.tr_copy_from(&ws.h);
@@ -326,29 +371,16 @@ pub fn mixture_update(
         }
         ws.innov[k] = ws.noise[k] - jx;
     }
-    // ℓ₀ from the Cholesky factor of M (in `reff`), overwriting e₀.
+    // ℓ₀ from the factor of M (in `reff`), overwriting e₀; ℓ₁ from the factor of S₁ (in
+    // `sigma`) on a copy of e.
     ws.reff.copy_from(meas.m);
-    let Some(chol) = Cholesky::new(std::mem::replace(&mut ws.reff, DMatrix::zeros(0, 0))) else {
-        ws.reff = DMatrix::zeros(q, q);
+    if !factor_in_place(&mut ws.reff) || !factor_in_place(&mut ws.sigma) {
         return None;
-    };
-    ws.reff = chol.unpack();
-    let ell0 = log_density(&ws.reff, &mut ws.noise);
-    // W = S₁⁻¹ J T = Kᵀ, then ℓ₁ from the factor of S₁ on a copy of e.
-    let sigma = std::mem::replace(&mut ws.sigma, DMatrix::zeros(0, 0));
-    let Some(chol) = Cholesky::new(sigma) else {
-        ws.sigma = DMatrix::zeros(q, q);
-        return None;
-    };
-    ws.w.copy_from(&ws.ht);
-    chol.solve_mut(&mut ws.w);
-    ws.sigma = chol.unpack();
-    // g = K e, before `innov` turns into L⁻¹ e.
-    for c in 0..n {
-        x_filt[c] = (0..q).map(|k| ws.w[(k, c)] * ws.innov[k]).sum();
     }
-    let ell1 = log_density(&ws.sigma, &mut ws.innov);
-    let (arrival, loglik) = if p <= 0.0 {
+    let ell0 = log_density(&ws.reff, &mut ws.noise);
+    ws.noise.copy_from(&ws.innov);
+    let ell1 = log_density(&ws.sigma, &mut ws.noise);
+    let (probability, loglik) = if p <= 0.0 {
         (0.0, ell0)
     } else if p >= 1.0 {
         (1.0, ell1)
@@ -359,21 +391,8 @@ pub fn mixture_update(
             a.max(b) + (-(a - b).abs()).exp().ln_1p(),
         )
     };
-    let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
-    p_mat.copy_from(&t_mat);
-    p_mat.gemm_tr(-arrival, &ws.w, &ws.ht, 1.0);
-    let spread = arrival * (1.0 - arrival);
-    for c in 0..n {
-        for r in 0..n {
-            p_mat[(r, c)] += spread * x_filt[r] * x_filt[c];
-        }
-    }
-    symmetrize(&mut p_mat);
-    for c in 0..n {
-        x_filt[c] = x_pred[c] + arrival * x_filt[c];
-    }
     Some(Arrival {
-        probability: arrival,
+        probability,
         loglik,
     })
 }
@@ -402,44 +421,25 @@ pub fn mixture_pseudo_measurement(
     r_out: &mut [f64],
     ws: &mut Workspace,
 ) -> Option<Arrival> {
-    let (q, n) = ws.h.shape();
-    // The covariance form on a scratch copy gives π, the log density and S₁⁻¹ e (in `w`).
-    let arrival = {
-        let (mut x_scratch, mut p_scratch) = (
-            std::mem::take(&mut ws.x_scratch),
-            std::mem::take(&mut ws.p_scratch),
-        );
-        let a = mixture_update(meas, x_pred, sigma, &mut x_scratch, &mut p_scratch, ws);
-        (ws.x_scratch, ws.p_scratch) = (x_scratch, p_scratch);
-        a?
-    };
+    let q = ws.h.nrows();
+    let arrival = mixture_weights(meas, x_pred, sigma, ws)?;
     let pi = arrival.probability;
-    // Jp and S₁ (`ws.ht` = J Σ from the covariance form), and e (in `noise`).
+    // Jp = J Σ Jᵀ; u = S₁⁻¹ e (in `noise`) and δ = eᵀ u.
     ws.jp.gemm(1.0, &ws.ht, &ws.h_tr, 0.0);
-    ws.s1.copy_from(&ws.jp);
-    ws.s1 += meas.m;
-    for k in 0..q {
-        let mut jx = 0.0;
-        for c in 0..n {
-            jx += meas.j[(k, c)] * x_pred[c];
-        }
-        ws.noise[k] = meas.y[k] - meas.ru[k] - jx;
-    }
-    // u = S₁⁻¹ e (in `innov`) and δ = eᵀ u.
-    let chol = Cholesky::new(std::mem::replace(&mut ws.s1, DMatrix::zeros(0, 0)))?;
-    ws.innov.copy_from(&ws.noise);
-    chol.solve_mut(&mut ws.innov);
-    ws.s1 = chol.unpack();
-    let delta = ws.noise.dot(&ws.innov);
-    // B = (1−π) Jp + M = L Lᵀ, ε = eᵀ B⁻¹ e = |L⁻¹ e|², and f = B⁻¹ e (in `noise`).
+    ws.noise.copy_from(&ws.innov);
+    ws.sigma.solve_lower_triangular_mut(&mut ws.noise);
+    ws.sigma.tr_solve_lower_triangular_mut(&mut ws.noise);
+    let delta = ws.innov.dot(&ws.noise);
+    // B = (1−π) Jp + M = L Lᵀ, ε = eᵀ B⁻¹ e = |L⁻¹ e|², and f = B⁻¹ e (in `innov`).
     ws.b.copy_from(&ws.jp);
     ws.b.scale_mut(1.0 - pi);
     ws.b += meas.m;
-    let chol = Cholesky::new(std::mem::replace(&mut ws.b, DMatrix::zeros(0, 0)))?;
-    ws.b = chol.unpack();
-    ws.b.solve_lower_triangular_mut(&mut ws.noise);
-    let eps = ws.noise.norm_squared();
-    ws.b.tr_solve_lower_triangular_mut(&mut ws.noise);
+    if !factor_in_place(&mut ws.b) {
+        return None;
+    }
+    ws.b.solve_lower_triangular_mut(&mut ws.innov);
+    let eps = ws.innov.norm_squared();
+    ws.b.tr_solve_lower_triangular_mut(&mut ws.innov);
     // W = π B⁻¹ − π(1−π) f fᵀ / D.
     let mut w = DMatrixViewMut::from_slice(w_out, q, q);
     w.fill_with_identity();
@@ -447,12 +447,12 @@ pub fn mixture_pseudo_measurement(
     ws.b.tr_solve_lower_triangular_mut(&mut w);
     w.scale_mut(pi);
     let d = 1.0 + (1.0 - pi) * (eps - delta);
-    w.ger(-pi * (1.0 - pi) / d, &ws.noise, &ws.noise, 1.0);
+    w.ger(-pi * (1.0 - pi) / d, &ws.innov, &ws.innov, 1.0);
     symmetrize(&mut w);
     // r = π (u + W Jp u).
-    ws.jp_u.gemv(1.0, &ws.jp, &ws.innov, 0.0);
+    ws.jp_u.gemv(1.0, &ws.jp, &ws.noise, 0.0);
     let mut r = nalgebra::DVectorViewMut::from_slice(r_out, q);
-    r.copy_from(&ws.innov);
+    r.copy_from(&ws.noise);
     r.gemv(1.0, &w, &ws.jp_u, 1.0);
     r.scale_mut(pi);
     Some(arrival)
@@ -479,7 +479,8 @@ pub fn propagate_cov(
     symmetrize(&mut out);
 }
 
-fn symmetrize(m: &mut DMatrixViewMut<f64>) {
+/// `m ← (m + mᵀ) / 2`.
+pub(crate) fn symmetrize(m: &mut DMatrixViewMut<f64>) {
     let n = m.nrows();
     for r in 0..n {
         for c in 0..r {

@@ -124,10 +124,8 @@ pub struct TwoStepFilter<'m, K: LocalKernel = DynamicKernel> {
     /// sequential path).
     workers: Vec<Worker<K>>,
     solver_error: f64,
-    /// The mixture update's `π(t, i)` and the log density of each `y(t, i)` (`N` each;
-    /// empty with the linear update).
+    /// The mixture update's `π(t, i)` (`N`; empty with the linear update).
     arrival: Vec<f64>,
-    loglik: Vec<f64>,
 }
 
 /// The preallocated state of one chunk's local work.
@@ -183,8 +181,7 @@ struct UpdateInputs<'a, G> {
     u: &'a [f64],
 }
 
-/// The local updates (Nahi's, or the mixture update with its `π` and log density into
-/// `arrival` and `loglik`) and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
+/// The local updates (Nahi's, or the mixture update with its `π` into `arrival`) and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
 /// (0-based). Returns the first subsystem whose `Σ` is not positive definite.
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
@@ -193,7 +190,7 @@ fn update_range<K: LocalKernel>(
     x_filt: &mut [f64],
     p_filt: &mut [f64],
     z: &mut [f64],
-    (arrival, loglik): (&mut [f64], &mut [f64]),
+    arrival: &mut [f64],
 ) -> FirstFailure {
     let model = inp.model;
     let d = model.dims;
@@ -229,7 +226,7 @@ fn update_range<K: LocalKernel>(
             let x_pred = &inp.x_pred[vi.clone()];
             let t_pred = &inp.t_pred[nn.clone()];
             match nahi::mixture_update(&meas, x_pred, t_pred, xf, pf, &mut wk.mixture) {
-                Some(a) => (arrival[k], loglik[k]) = (a.probability, a.loglik),
+                Some(a) => arrival[k] = a.probability,
                 None => return Some(i),
             }
         } else if let Some((gain, p_shared)) = inp.shared {
@@ -452,10 +449,6 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
                 "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
             ));
         }
-        let mixture_buffer = || match opts.update {
-            Update::Mixture => vec![0.0; big_n],
-            Update::Linear => Vec::new(),
-        };
         let worker = Worker::<K>::new(model);
         let gain = worker.kernel.new_gain();
         Ok(Self {
@@ -480,8 +473,10 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
             solve_scratch: Vec::with_capacity(big_n * d.s()),
             workers: vec![worker; big_n.div_ceil(CHUNK).max(1)],
             solver_error,
-            arrival: mixture_buffer(),
-            loglik: mixture_buffer(),
+            arrival: match opts.update {
+                Update::Mixture => vec![0.0; big_n],
+                Update::Linear => Vec::new(),
+            },
         })
     }
 
@@ -580,10 +575,9 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 .zip(self.p_filt.par_chunks_mut(CHUNK * n * n))
                 .zip(par_chunks_or_empty(&mut self.z, CHUNK * s, chunks))
                 .zip(par_chunks_or_empty(&mut self.arrival, CHUNK, chunks))
-                .zip(par_chunks_or_empty(&mut self.loglik, CHUNK, chunks))
                 .enumerate()
-                .filter_map(|(c, (((((wk, xf), pf), z), a), l))| {
-                    update_range(&inp, wk, c * CHUNK, xf, pf, z, (a, l))
+                .filter_map(|(c, ((((wk, xf), pf), z), a))| {
+                    update_range(&inp, wk, c * CHUNK, xf, pf, z, a)
                 })
                 .min()
         } else {
@@ -594,7 +588,7 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 &mut self.x_filt,
                 &mut self.p_filt,
                 &mut self.z,
-                (&mut self.arrival, &mut self.loglik),
+                &mut self.arrival,
             )
         };
         if let Some(i) = failed {
