@@ -1,5 +1,6 @@
 //! Accuracy figures against a known truth (docs/theory.md §11): RMSE per state element and the average
-//! NEES with its resolution floor.
+//! NEES with its resolution floor; how well the mixture update detects lost measurements
+//! (docs/theory.md §10).
 
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
 use serde::{Deserialize, Deserializer, Serialize};
@@ -212,6 +213,73 @@ impl AccuracyReport {
     }
 }
 
+/// Running sums of how well the mixture update's `π(t, i)` (docs/theory.md §10) tells lost
+/// measurements from received ones, against the true indicator `γ(t, i)`.
+#[derive(Debug, Clone, Default)]
+pub struct Detection {
+    abs_error_sum: f64,
+    lost: u64,
+    detected: u64,
+    received: u64,
+    false_alarms: u64,
+}
+
+/// The detection figures of a run: a measurement counts as detected lost when `π < 0.5`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DetectionReport {
+    /// Mean `|π − γ|` over every scored `(t, i)`.
+    pub mean_abs_error: f64,
+    /// Lost measurements (`γ = 0`), and those with `π < 0.5`.
+    pub lost: u64,
+    pub detected: u64,
+    /// Received measurements (`γ = 1`), and those with `π < 0.5`.
+    pub received: u64,
+    pub false_alarms: u64,
+}
+
+impl Detection {
+    /// Scores one `π` against the true `γ` (0 or 1).
+    pub fn add(&mut self, arrival: f64, gamma: f64) {
+        self.abs_error_sum += (arrival - gamma).abs();
+        let flagged = arrival < 0.5;
+        if gamma == 0.0 {
+            self.lost += 1;
+            self.detected += u64::from(flagged);
+        } else {
+            self.received += 1;
+            self.false_alarms += u64::from(flagged);
+        }
+    }
+
+    pub fn report(&self) -> DetectionReport {
+        let terms = (self.lost + self.received).max(1);
+        DetectionReport {
+            mean_abs_error: self.abs_error_sum / terms as f64,
+            lost: self.lost,
+            detected: self.detected,
+            received: self.received,
+            false_alarms: self.false_alarms,
+        }
+    }
+}
+
+impl DetectionReport {
+    /// One line for standard error.
+    pub fn summary(&self) -> String {
+        let percent = |k: u64, of: u64| 100.0 * k as f64 / of.max(1) as f64;
+        format!(
+            "mean |π − γ| {:.4}; {} of {} lost measurements detected ({:.1} %), {} false alarms among {} received ({:.2} %)",
+            self.mean_abs_error,
+            self.detected,
+            self.lost,
+            percent(self.detected, self.lost),
+            self.false_alarms,
+            self.received,
+            percent(self.false_alarms, self.received)
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -240,5 +308,20 @@ mod tests {
         acc.add(&[1.0, 1.0], &[0.0, 1.0], &[0.0, 0.0, 0.0, 1.0]);
         assert_eq!(acc.report().anees, None);
         assert!((acc.report().rmse[0] - (5.0f64 / 3.0).sqrt()).abs() < 1e-15);
+    }
+
+    #[test]
+    fn detection_counts() {
+        let mut d = Detection::default();
+        for (pi, gamma) in [(0.1, 0.0), (0.7, 0.0), (0.9, 1.0), (0.2, 1.0), (1.0, 1.0)] {
+            d.add(pi, gamma);
+        }
+        let r = d.report();
+        assert_eq!(
+            (r.lost, r.detected, r.received, r.false_alarms),
+            (2, 1, 3, 1)
+        );
+        // (0.1 + 0.7 + 0.1 + 0.8 + 0) / 5.
+        assert!((r.mean_abs_error - 0.34).abs() < 1e-15);
     }
 }

@@ -13,7 +13,7 @@ use sisfilt::config::ConfigSource;
 use sisfilt::filter::kernel::DynamicKernel;
 use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions, Update};
 use sisfilt::interconnect::SolverKind;
-use sisfilt::io::estimates::{BackgroundWriter, EstimatesWriter, Format};
+use sisfilt::io::estimates::{BackgroundWriter, EstimatesColumns, EstimatesWriter, Format};
 use sisfilt::io::{StepLayout, StepReader};
 use sisfilt::model::Model;
 
@@ -226,28 +226,37 @@ fn steps_after_the_first_allocate_nothing() {
                 }
             });
             assert_eq!(count, 0, "reader, {threads} threads: {count} allocations");
+            // With the arrival column of the mixture update.
+            let columns = EstimatesColumns {
+                n: 2,
+                cross: 0,
+                arrival: true,
+            };
+            let pi: Vec<f64> = (0..big_n).map(|i| 1.0 / (1.0 + i as f64)).collect();
+            let pi = Some(pi.as_slice());
             for format in [Format::Csv, Format::Json] {
-                let mut writer = EstimatesWriter::new(std::io::sink(), format, 2, 0, None).unwrap();
-                writer.write_step(1, &x, &p, None).unwrap();
+                let mut writer =
+                    EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();
+                writer.write_step(1, &x, &p, None, pi).unwrap();
                 let mut t = 1;
                 let count = allocations_in(|| {
                     for _ in 0..2 {
                         t += 1;
-                        writer.write_step(t, &x, &p, None).unwrap();
+                        writer.write_step(t, &x, &p, None, pi).unwrap();
                     }
                 });
                 assert_eq!(
                     count, 0,
                     "writer {format:?}, {threads} threads: {count} allocations"
                 );
-                let writer = EstimatesWriter::new(std::io::sink(), format, 2, 0, None).unwrap();
-                let mut background = BackgroundWriter::new(writer, big_n, x.len(), p.len(), None);
-                background.write_step(1, &x, &p, None).unwrap();
+                let writer = EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();
+                let mut background = BackgroundWriter::new(writer, big_n);
+                background.write_step(1, &x, &p, None, pi).unwrap();
                 let mut t = 1;
                 let count = allocations_in(|| {
                     for _ in 0..2 {
                         t += 1;
-                        background.write_step(t, &x, &p, None).unwrap();
+                        background.write_step(t, &x, &p, None, pi).unwrap();
                     }
                 });
                 background.finish().unwrap();

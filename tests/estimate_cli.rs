@@ -188,6 +188,15 @@ impl Csv {
         Csv::parse(&read(path))
     }
 
+    /// The same table without its last column.
+    fn without_last_column(&self) -> Csv {
+        let drop_last = |r: &Vec<String>| r[..r.len() - 1].to_vec();
+        Csv {
+            header: drop_last(&self.header),
+            rows: self.rows.iter().map(drop_last).collect(),
+        }
+    }
+
     /// The `(t, i)` of every row.
     fn indices(&self) -> Vec<(usize, usize)> {
         self.rows
@@ -652,11 +661,11 @@ fn json_output_carries_the_csv_numbers_and_metadata() {
             serde_json::from_str(&doc).expect("an EstimatesDocument");
         assert_eq!(typed.columns, csv.header);
         assert_eq!(typed.estimates.len(), csv.rows.len());
-        assert_eq!(typed.accuracy.is_some(), with_truth);
+        assert_eq!(typed.summary.accuracy.is_some(), with_truth);
         assert_eq!(typed.metadata.n, n);
         assert_eq!(typed.metadata.config.sha256, config_sha);
         let mut metadata = v.as_object().unwrap().clone();
-        for key in ["columns", "estimates", "accuracy"] {
+        for key in ["columns", "estimates", "accuracy", "detection"] {
             metadata.remove(key);
         }
         assert_eq!(
@@ -1297,4 +1306,172 @@ fn measurements_from_standard_input() {
     );
     let msg = one_error_line(&out);
     assert!(names_line(&msg, 30), "{msg}");
+}
+
+// ---------------------------------------------------------------- 10. the mixture update
+
+/// The detection figures recomputed from the `arrival` column and the truth's `gamma`:
+/// `(Σ|π − γ|, lost, detected, received, false alarms)`.
+fn detection_from_files(arrival: &[f64], truth: &Csv) -> (f64, u64, u64, u64, u64) {
+    assert_eq!(arrival.len(), truth.rows.len());
+    let mut d = (0.0, 0, 0, 0, 0);
+    for (pi, row) in arrival.iter().zip(&truth.rows) {
+        assert!((0.0..=1.0).contains(pi), "π = {pi}");
+        let gamma: f64 = row.last().unwrap().parse().unwrap();
+        d.0 += (pi - gamma).abs();
+        if gamma == 0.0 {
+            d.1 += 1;
+            d.2 += u64::from(*pi < 0.5);
+        } else {
+            d.3 += 1;
+            d.4 += u64::from(*pi < 0.5);
+        }
+    }
+    d
+}
+
+/// On every shipped config with `Q > 0`, each filter with `--update mixture` writes `π` in a
+/// last column `arrival`, reports detection figures that agree with that column and the
+/// truth, and has a lower RMSE than the same filter with `--update linear`.
+#[test]
+fn mixture_update_detects_lost_measurements() {
+    for config in shipped_configs().into_iter().filter(|c| !q_is_zero(c)) {
+        let name = config.file_name().unwrap().to_string_lossy().to_string();
+        let dir = tmp();
+        simulate(&config, dir.path(), &[]);
+        let meas = dir.path().join("measurements.csv");
+        let truth_path = dir.path().join("truth.csv");
+        let truth = Csv::read(&truth_path);
+        let (_, _, n) = dims_of_run(dir.path());
+        for filter in ["distributed", "joint", "centralized"] {
+            let what = format!("{name}, {filter}");
+            let run = |update: &str, format: &str| {
+                ok(
+                    estimate(&config, &meas, &["--filter", filter, "--update", update])
+                        .args(["--format", format, "--truth"])
+                        .arg(&truth_path),
+                )
+            };
+            let rmse = |doc: &serde_json::Value| doc["accuracy"]["rmse_overall"].as_f64().unwrap();
+            let linear = run("linear", "json");
+            let linear: serde_json::Value = serde_json::from_slice(&linear.stdout).unwrap();
+            let out = run("mixture", "json");
+            let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            assert!(
+                rmse(&doc) < rmse(&linear),
+                "{what}: mixture RMSE {} against linear {}",
+                rmse(&doc),
+                rmse(&linear)
+            );
+            assert_eq!(doc["options"]["update"], "mixture", "{what}");
+            assert_eq!(linear["options"]["update"], "linear", "{what}");
+            assert!(linear["detection"].is_null(), "{what}: linear has no π");
+
+            let columns = doc["columns"].as_array().unwrap();
+            assert_eq!(columns.last().unwrap(), "arrival", "{what}");
+            // The CSV carries the JSON's numbers (serde_json may be off by one unit in the
+            // last place), `arrival` last and no cross-covariances.
+            let csv = Csv::parse(&run("mixture", "csv").stdout);
+            let mut header = estimates_header(n);
+            header.push("arrival".into());
+            assert_eq!(csv.header, header, "{what}");
+            let width = 2 + n + n * (n + 1) / 2;
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-15 * a.abs().max(1.0);
+            for (row, json_row) in csv.rows.iter().zip(doc["estimates"].as_array().unwrap()) {
+                let json_row = json_row.as_array().unwrap();
+                for (cell, v) in row[..width].iter().zip(json_row) {
+                    let (a, b) = (cell.parse::<f64>().unwrap(), v.as_f64().unwrap());
+                    assert!(close(a, b), "{what}: {a} against {b}");
+                }
+                let pi: f64 = row.last().unwrap().parse().unwrap();
+                let json_pi = json_row.last().unwrap().as_f64().unwrap();
+                assert!(close(pi, json_pi), "{what}: {pi} against {json_pi}");
+            }
+            let arrival: Vec<f64> = csv
+                .rows
+                .iter()
+                .map(|row| row.last().unwrap().parse().unwrap())
+                .collect();
+            let (abs_sum, lost, detected, received, false_alarms) =
+                detection_from_files(&arrival, &truth);
+            let det = &doc["detection"];
+            assert_eq!(det["lost"].as_u64(), Some(lost), "{what}");
+            assert_eq!(det["detected"].as_u64(), Some(detected), "{what}");
+            assert_eq!(det["received"].as_u64(), Some(received), "{what}");
+            assert_eq!(det["false_alarms"].as_u64(), Some(false_alarms), "{what}");
+            let mean = abs_sum / (lost + received) as f64;
+            assert!(
+                (det["mean_abs_error"].as_f64().unwrap() - mean).abs() < 1e-12,
+                "{what}"
+            );
+            // Far better than chance: a lost measurement is flagged far more often than a
+            // received one.
+            let rate = |k: u64, of: u64| k as f64 / of as f64;
+            assert!(
+                rate(detected, lost) > 4.0 * rate(false_alarms, received),
+                "{what}: {detected} of {lost} detected, {false_alarms} of {received} false alarms"
+            );
+            let line = stderr_lines(&out)
+                .into_iter()
+                .find(|l| l.starts_with("detection: "))
+                .unwrap_or_else(|| panic!("{what}: no detection line"));
+            assert!(line.contains(&format!("{detected} of {lost}")), "{line}");
+        }
+    }
+}
+
+/// A single subsystem with inputs and a `p` list: the three filters with the mixture
+/// update are the same filter, and write the same estimates and `π`.
+#[test]
+fn mixture_update_agrees_across_filters_on_one_subsystem() {
+    let dir = tmp();
+    let config = dir.path().join("one.toml");
+    write(
+        &config,
+        "subsystems = 1\nsteps = 80\nseed = 5\n\n[interconnection]\nplus = 1\nminus = 1\n\n\
+         [model]\nA = [[0.95, 0.1], [-0.1, 0.9]]\nB = [[0.1, 0.0], [0.0, 0.1]]\n\
+         C = [[0.3], [0.0]]\nD = [[0.5, 0.0], [0.0, 0.5]]\nG = [[0.2, 0.0], [0.0, 0.2]]\n\
+         J = [[1.0, 0.5]]\nR = [[0.2]]\nM = [[0.04]]\nQ = [[0.02, 0.0], [0.0, 0.01]]\n\n\
+         [dropout]\np = [0.6]\n\n[initial]\nmean = [1.0, 0.0]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n\n\
+         [input]\nkind = \"sine\"\nperiod = 11.0\n",
+    );
+    let run = dir.path().join("run");
+    simulate(&config, &run, &[]);
+    let meas = run.join("measurements.csv");
+    let mixture = |filter: &str| {
+        let out = ok(&mut estimate(
+            &config,
+            &meas,
+            &["--filter", filter, "--update", "mixture"],
+        ));
+        Csv::parse(&out.stdout)
+    };
+    let distributed = mixture("distributed");
+    for filter in ["joint", "centralized"] {
+        let other = mixture(filter);
+        let diff = max_abs_diff(&distributed, &other);
+        assert!(diff < 1e-9, "{filter}: {diff}");
+    }
+    let linear = Csv::parse(&ok(&mut estimate(&config, &meas, &[])).stdout);
+    assert!(max_abs_diff(&linear, &distributed.without_last_column()) > 1e-3);
+}
+
+/// `--update mixture` with `--dropouts known`, or with `--smooth`, is bad input.
+#[test]
+fn mixture_update_refuses_known_dropouts_and_smoothing() {
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let meas = dir.path().join("measurements.csv");
+    for (extra, fragment) in [
+        (&["--dropouts", "known"][..], "nothing to detect"),
+        (&["--smooth"][..], "not built yet"),
+    ] {
+        let out = fails(
+            estimate(&config, &meas, &["--update", "mixture"]).args(extra),
+            2,
+        );
+        let msg = one_error_line(&out);
+        assert!(msg.contains(fragment), "{msg}");
+    }
 }

@@ -304,6 +304,48 @@ fn series_reads_the_json_estimates_like_the_csv() {
     );
 }
 
+/// Estimates of the joint filter with the mixture update carry cross-covariance columns (in
+/// JSON) and a last column `arrival`: the figures read them, and draw the same from the CSV
+/// and the JSON.
+#[test]
+fn plots_read_the_joint_mixture_estimates() {
+    let dir = fixture();
+    for out in ["paper/mixture.csv", "paper/mixtur.json"] {
+        run_ok(
+            dir,
+            &[
+                "-q",
+                "estimate",
+                "--meas",
+                "paper/measurements.csv",
+                "--filter",
+                "joint",
+                "--update",
+                "mixture",
+                "--out",
+                out,
+            ],
+        );
+    }
+    for figure in ["series", "heatmap"] {
+        let args = |est: &'static str| {
+            let mut args = vec![figure, "--estimates", est, "--truth", "paper/truth.csv"];
+            if figure == "series" {
+                args.extend_from_slice(&["--subsystem", "2"]);
+            }
+            args.extend_from_slice(&["--state", "1"]);
+            args
+        };
+        let csv = plot(&args("paper/mixture.csv"), &format!("{figure}-csv.svg"));
+        let json = plot(&args("paper/mixtur.json"), &format!("{figure}-json.svg"));
+        // Identical but for the file name (of the same length, for the same layout).
+        assert!(
+            csv.replace("mixture.csv", "E") == json.replace("mixtur.json", "E"),
+            "{figure}"
+        );
+    }
+}
+
 /// The heatmap's cell rectangles: every `rect` but the white background, the colour bar's 120
 /// slices and its frame.
 fn cell_count(svg: &str) -> usize {

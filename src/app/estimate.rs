@@ -6,18 +6,18 @@ use std::path::PathBuf;
 use anyhow::Result;
 use sha2::Digest;
 
-use sisfilt::accuracy::{Accuracy, AccuracyReport};
+use sisfilt::accuracy::{Accuracy, AccuracyReport, Detection};
 use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
-    JointOptions, SecondMoment, TwoStepOptions, check_estimates, two_step,
+    JointOptions, SecondMoment, TwoStepOptions, Update, check_estimates, two_step,
 };
 use sisfilt::inputs::{InputStream, open_csv};
 use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
 use sisfilt::io::estimates::{
-    BackgroundWriter, ConfigRef, EstimateKind, EstimateOptions, EstimatesMetadata, EstimatesWriter,
-    Format, JointSettings,
+    BackgroundWriter, ConfigRef, EstimateKind, EstimateOptions, EstimatesColumns,
+    EstimatesMetadata, EstimatesSummary, EstimatesWriter, Format, JointSettings,
 };
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, StepReader, check_files, folder_of};
 use sisfilt::lifted::spectral_radius;
@@ -65,7 +65,7 @@ pub struct EstimateArgs {
     #[arg(long, value_parser = choice::<SolverKind>())]
     pub solver: Option<SolverKind>,
     /// Second moment S = E[x xᵀ] in the Nahi filter [default: local; paper with --paper;
-    /// band for --filter joint].
+    /// band for --filter joint]. No effect with --update mixture, which needs none.
     #[arg(long, value_parser = choice::<SecondMoment>())]
     pub second_moment: Option<SecondMoment>,
     /// Estimate fed to step 1 [default: filtered; predicted with --paper].
@@ -75,6 +75,11 @@ pub struct EstimateArgs {
     /// are empty cells and are skipped.
     #[arg(long, value_parser = choice::<Dropouts>(), default_value = "unknown")]
     pub dropouts: Dropouts,
+    /// How a measurement updates the estimate: linear is the paper's Nahi update; mixture
+    /// weighs each measurement by the posterior probability that it arrived (the `arrival`
+    /// column) and beats the best linear filter (docs/theory.md §10). Needs --dropouts unknown.
+    #[arg(long, value_parser = choice::<Update>(), default_value = "linear")]
+    pub update: Update,
     /// Exactly the paper's algorithm: --solver transfer --interconnect-from predicted
     /// --second-moment paper (explicit options win).
     #[arg(long)]
@@ -146,6 +151,21 @@ impl Plan {
         two_step.second_moment = args.second_moment.unwrap_or(two_step.second_moment);
         two_step.interconnect_from = args.interconnect_from.unwrap_or(two_step.interconnect_from);
         two_step.dropouts = args.dropouts;
+        two_step.update = args.update;
+        if args.update == Update::Mixture {
+            if args.dropouts == Dropouts::Known {
+                return Err(Error::Usage(
+                    "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
+                )
+                .into());
+            }
+            if args.smooth {
+                return Err(Error::Usage(
+                    "--update mixture --smooth: smoothing with the mixture update is not built yet; smooth with --update linear, or filter with --update mixture".into(),
+                )
+                .into());
+            }
+        }
         let joint = joint_options(args)?;
         let output = match (args.smooth, args.predicted, args.max_memory) {
             (true, _, _) => EstimateKind::Smoothed,
@@ -174,6 +194,10 @@ impl Plan {
 
     fn dropouts(&self) -> Dropouts {
         self.two_step.dropouts
+    }
+
+    fn update(&self) -> Update {
+        self.two_step.update
     }
 }
 
@@ -289,7 +313,12 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     if plan.output == EstimateKind::Smoothed {
         let smoother = make_smoother(args, &plan, &model)?;
         let k = plan.joint.map_or(0, |j| j.band.min(big_n - 1));
-        let writer = EstimatesWriter::new(output, plan.format, n, k, Some(&metadata))
+        let columns = EstimatesColumns {
+            n,
+            cross: k,
+            arrival: false,
+        };
+        let writer = EstimatesWriter::new(output, plan.format, columns, Some(&metadata))
             .map_err(|e| Error::io(&out_name, e))?;
         return run_smoother(
             args,
@@ -306,15 +335,25 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     }
     let filter: Box<dyn ChainFilter> = match (plan.filter, plan.joint) {
         (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(&model, j)?),
-        (FilterKind::Centralized, _) => Box::new(CentralizedFilter::new(
-            &model,
-            plan.dropouts() == Dropouts::Known,
-            args.max_lifted,
-        )?),
+        (FilterKind::Centralized, _) => {
+            let filter = CentralizedFilter::new(
+                &model,
+                plan.dropouts() == Dropouts::Known,
+                args.max_lifted,
+            )?;
+            match plan.update() {
+                Update::Linear => Box::new(filter),
+                Update::Mixture => Box::new(filter.with_mixture_update()?),
+            }
+        }
         _ => two_step(&model, plan.two_step)?,
     };
-    let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
-    let writer = EstimatesWriter::new(output, plan.format, n, cross, Some(&metadata))
+    let columns = EstimatesColumns {
+        n,
+        cross: filter.covariance_band(false).map_or(0, |(_, k)| k),
+        arrival: filter.arrival().is_some(),
+    };
+    let writer = EstimatesWriter::new(output, plan.format, columns, Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?;
     run_filter(
         args,
@@ -388,8 +427,12 @@ fn metadata(
             }),
             output: plan.output,
             paper: args.paper,
-            second_moment: two_step.map(|o| o.second_moment),
+            // The mixture update has no second moment.
+            second_moment: two_step
+                .filter(|o| o.update == Update::Linear)
+                .map(|o| o.second_moment),
             solver: two_step.map(|o| o.solver),
+            update: plan.update(),
         },
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         subsystems: model.subsystems,
@@ -421,19 +464,13 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
         writer,
     } = io;
     let (n, big_n) = (model.dims.n, model.subsystems);
-    let cross = filter.covariance_band(false).map_or(0, |(_, k)| k);
     let out_name = args.out.display().to_string();
-    let mut writer = BackgroundWriter::new(
-        writer,
-        big_n,
-        big_n * n,
-        big_n * n * n,
-        (cross > 0).then_some((big_n, n, cross)),
-    );
+    let mut writer = BackgroundWriter::new(writer, big_n);
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
     let mut accuracy = Accuracy::new(n);
+    let mut detection = Detection::default();
     // With --predicted, row t is scored against the truth at t + 1.
     let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
     let mut warned_transfer = false;
@@ -473,7 +510,7 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
         check_estimates(t, n, x_hat, p_hat)?;
         let band = filter.covariance_band(predicted).map(|(b, _)| b);
         clock
-            .write(|| writer.write_step(t, x_hat, p_hat, band))
+            .write(|| writer.write_step(t, x_hat, p_hat, band, filter.arrival()))
             .map_err(|e| Error::io(&out_name, e))?;
         if let Some(truth) = truth.as_mut() {
             clock.read(|| read_truth_step(truth, t, &mut x_true))?;
@@ -495,6 +532,10 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
                 prev_x.copy_from_slice(x_hat);
                 prev_p.copy_from_slice(p_hat);
             }
+            // π(t, i) is scored against γ(t, i), whichever estimate row t holds.
+            for (i, &pi) in filter.arrival().unwrap_or_default().iter().enumerate() {
+                detection.add(pi, x_true[i * (n + 1) + n]);
+            }
         }
         steps = t;
     }
@@ -504,13 +545,14 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
         "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
         (steps * big_n) as f64 / elapsed.max(1e-9)
     ));
-    let report = truth.is_some().then(|| scored(&accuracy)).transpose()?;
-    if let Some(r) = &report {
-        report_accuracy(r);
-    }
+    let summary = EstimatesSummary {
+        accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
+        detection: (truth.is_some() && filter.arrival().is_some()).then(|| detection.report()),
+    };
+    report_summary(&summary);
     let busy = clock.write(|| -> Result<f64> {
         let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
-        writer.commit(report.as_ref())?;
+        writer.commit(&summary)?;
         Ok(busy)
     })?;
     if args.timings {
@@ -600,7 +642,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         check_estimates(idx + 1, n, x, p)?;
         let band = smoothed.bands.as_ref().map(|b| &b[idx]);
         writer
-            .write_step(idx + 1, x, p, band)
+            .write_step(idx + 1, x, p, band, None)
             .map_err(|e| Error::io(&out_name, e))?;
         for i in 0..big_n {
             if let Some(row) = truth_rows.get(idx) {
@@ -612,11 +654,12 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
             }
         }
     }
-    let report = truth.is_some().then(|| scored(&accuracy)).transpose()?;
-    if let Some(r) = &report {
-        report_accuracy(r);
-    }
-    Ok(writer.commit(report.as_ref())?)
+    let summary = EstimatesSummary {
+        accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
+        detection: None,
+    };
+    report_summary(&summary);
+    Ok(writer.commit(&summary)?)
 }
 
 /// The accuracy figures of a run scored against `--truth`; an error when not one term was
@@ -703,7 +746,7 @@ fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
         loading: args.loading,
         second_moment,
         dropouts: args.dropouts,
-        ..defaults
+        update: args.update,
     }))
 }
 
@@ -751,7 +794,17 @@ impl PhaseClock {
     }
 }
 
-/// Prints accuracy figures on standard error, with the NEES warning of docs/theory.md §11.
+/// Prints the figures of a run scored against the truth on standard error: the accuracy,
+/// with the NEES warning of docs/theory.md §11, and the detection of lost measurements.
+fn report_summary(summary: &EstimatesSummary) {
+    if let Some(r) = &summary.accuracy {
+        report_accuracy(r);
+    }
+    if let Some(d) = &summary.detection {
+        sisfilt::messages::report("detection", d.summary());
+    }
+}
+
 fn report_accuracy(r: &AccuracyReport) {
     sisfilt::messages::report("accuracy", r.summary());
     if r.nees_left_out > 0 {

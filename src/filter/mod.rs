@@ -168,9 +168,10 @@ impl Choice for Dropouts {
 }
 
 /// How a measurement updates the estimate (the meaning of each in [`Choice::VARIANTS`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Update {
+    #[default]
     Linear,
     Mixture,
 }

@@ -8,13 +8,13 @@ use std::io::Write;
 
 use serde::{Deserialize, Serialize};
 
-use crate::accuracy::AccuracyReport;
+use crate::accuracy::{AccuracyReport, DetectionReport};
 use crate::band::SymBand;
 use crate::error::{Error, Result};
 use rayon::prelude::*;
 
 use crate::choice::{Choice, Variant};
-use crate::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment};
+use crate::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use crate::interconnect::SolverKind;
 use crate::io::Output;
 use crate::io::csv_out::NumberFormat;
@@ -92,6 +92,9 @@ pub struct EstimateOptions {
     pub paper: bool,
     pub second_moment: Option<SecondMoment>,
     pub solver: Option<SolverKind>,
+    /// How a measurement updates the estimate (files from before the mixture update: linear).
+    #[serde(default)]
+    pub update: Update,
 }
 
 /// The joint filter's options as run: the band `k` (at most `N − 1`), the tolerance of
@@ -104,15 +107,27 @@ pub struct JointSettings {
     pub second_moment: SecondMoment,
 }
 
+/// What a run found, known only at its end: it closes an estimates JSON file (each field
+/// `null` when not computed).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct EstimatesSummary {
+    /// The accuracy against `--truth`.
+    pub accuracy: Option<AccuracyReport>,
+    /// With the mixture update and `--truth`: how well `π` detected the lost measurements.
+    #[serde(default)]
+    pub detection: Option<DetectionReport>,
+}
+
 /// A whole estimates JSON file: the metadata, the columns, the rows (`null` for a missing
-/// cross-covariance) and the accuracy against the truth, if scored.
+/// cross-covariance) and the summary.
 #[derive(Debug, Deserialize)]
 pub struct EstimatesDocument {
     #[serde(flatten)]
     pub metadata: EstimatesMetadata,
     pub columns: Vec<String>,
     pub estimates: Vec<Vec<Option<f64>>>,
-    pub accuracy: Option<AccuracyReport>,
+    #[serde(flatten)]
+    pub summary: EstimatesSummary,
 }
 
 /// The column names of an estimates file with state dimension `n`.
@@ -141,6 +156,53 @@ pub fn cross_covariance_header(n: usize, k: usize) -> Vec<String> {
     h
 }
 
+/// The column of `π(t, i)`, the posterior probability that the measurement arrived (the
+/// mixture update, docs/theory.md §10): the last of a row.
+pub const ARRIVAL_COLUMN: &str = "arrival";
+
+/// The columns of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n`, then in JSON the
+/// cross-covariance blocks `C{d}_{r}_{c}` of `d = 1..cross`, then `arrival` when the filter
+/// reports it (docs/theory.md §13).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EstimatesColumns {
+    /// State dimension.
+    pub n: usize,
+    /// Cross-covariance blocks per row.
+    pub cross: usize,
+    /// The last column is `arrival`.
+    pub arrival: bool,
+}
+
+impl EstimatesColumns {
+    /// The column names, `t` and `i` included.
+    pub fn header(&self) -> Vec<String> {
+        let mut h = estimates_header(self.n);
+        h.extend(cross_covariance_header(self.n, self.cross));
+        if self.arrival {
+            h.push(ARRIVAL_COLUMN.to_string());
+        }
+        h
+    }
+
+    /// The columns whose names are `header`, if they are those of an estimates file.
+    pub fn parse(header: &[String]) -> Option<Self> {
+        let arrival = header.last().is_some_and(|c| c == ARRIVAL_COLUMN);
+        let width = header.len() - usize::from(arrival);
+        (1..=width).find_map(|n| {
+            let own = 2 + n + n * (n + 1) / 2;
+            let cross = width.checked_sub(own)? / (n * n);
+            let columns = Self { n, cross, arrival };
+            (columns.header() == header).then_some(columns)
+        })
+    }
+
+    /// Values per row after `t` and `i`.
+    pub fn values(&self) -> usize {
+        let n = self.n;
+        n + n * (n + 1) / 2 + self.cross * n * n + usize::from(self.arrival)
+    }
+}
+
 /// Rows formatted per batch: bounds the writer's memory whatever `N`.
 const BATCH_ROWS: usize = 1 << 16;
 /// Steps with at least this many rows are formatted in parallel.
@@ -153,9 +215,8 @@ const CHUNK_ROWS: usize = 1 << 14;
 /// on the thread count), and written in order.
 pub struct EstimatesWriter<W: Write = Output> {
     out: W,
-    n: usize,
-    /// Cross-covariance blocks per JSON row (`k`; 0 for none and for CSV).
-    cross: usize,
+    /// The columns written (no cross-covariance blocks in CSV).
+    columns: EstimatesColumns,
     format: Format,
     /// No row written yet (the first JSON row has no leading comma).
     first: bool,
@@ -165,18 +226,17 @@ pub struct EstimatesWriter<W: Write = Output> {
 
 impl<W: Write> EstimatesWriter<W> {
     /// Starts the output: the CSV header, or for JSON the metadata (when given) opening the
-    /// document, with `cross` cross-covariance blocks per row (see
-    /// [`cross_covariance_header`]).
+    /// document. CSV leaves out the cross-covariance blocks of `columns`.
     pub fn new(
         mut out: W,
         format: Format,
-        n: usize,
-        cross: usize,
+        mut columns: EstimatesColumns,
         metadata: Option<&EstimatesMetadata>,
     ) -> std::io::Result<Self> {
-        let mut header = estimates_header(n);
-        let cross = if format == Format::Json { cross } else { 0 };
-        header.extend(cross_covariance_header(n, cross));
+        if format == Format::Csv {
+            columns.cross = 0;
+        }
+        let header = columns.header();
         match format {
             Format::Csv => {
                 out.write_all(header.join(",").as_bytes())?;
@@ -199,30 +259,36 @@ impl<W: Write> EstimatesWriter<W> {
         }
         Ok(Self {
             out,
-            n,
-            cross,
+            columns,
             format,
             first: true,
             buffers: Vec::new(),
         })
     }
 
-    /// Writes the rows `(t, 1..N)` from `x̂` (`N·n`) and `P` (`N` blocks `n × n`,
-    /// column-major).
+    /// The columns written.
+    pub fn columns(&self) -> EstimatesColumns {
+        self.columns
+    }
+
+    /// Writes the rows `(t, 1..N)` from `x̂` (`N·n`), `P` (`N` blocks `n × n`, column-major),
+    /// the covariance band (for the cross-covariance columns; `null` without it) and `π`
+    /// (`N` values, for the `arrival` column).
     pub fn write_step(
         &mut self,
         t: usize,
         x: &[f64],
         p: &[f64],
         band: Option<&SymBand>,
+        arrival: Option<&[f64]>,
     ) -> std::io::Result<()> {
-        let n = self.n;
-        let cross = if band.is_some() { self.cross } else { 0 };
+        let EstimatesColumns { n, cross, .. } = self.columns;
         let rows = x.len() / n;
+        let arrival = self.columns.arrival.then_some(arrival);
         let threads = rayon::current_num_threads();
         let parallel = rows >= PARALLEL_MIN_ROWS && threads > 1;
         let (format, first) = (self.format, self.first);
-        let values = n + n * (n + 1) / 2 + cross * n * n;
+        let values = self.columns.values();
         // t, i (20 digits each), brackets and commas, each value at most 24 characters.
         let max_row = 45 + 25 * values;
         let mut start = 0;
@@ -253,11 +319,14 @@ impl<W: Write> EstimatesWriter<W> {
                         let b = band.filter(|_| i + d < rows).map(|b| b.block(i, d));
                         (0..n * n).map(move |e| b.map_or(f64::NAN, |b| b[(e % n) * n + e / n]))
                     });
+                    // A missing π is written as an empty cell (CSV) or `null` (JSON).
+                    let pi = arrival.map(|a| a.map_or(f64::NAN, |a| a[i]));
                     let row = x[i * n..(i + 1) * n]
                         .iter()
                         .copied()
                         .chain(upper)
-                        .chain(blocks);
+                        .chain(blocks)
+                        .chain(pi);
                     match format {
                         Format::Csv => fmt.csv_row(buf, t, i + 1, row),
                         Format::Json => fmt.json_row(buf, first && i == 0, t, i + 1, row),
@@ -284,11 +353,12 @@ impl<W: Write> EstimatesWriter<W> {
         Ok(())
     }
 
-    /// Closes the document (JSON gets `accuracy`, or `null`), flushes and returns the writer.
-    pub fn finish(mut self, accuracy: Option<&AccuracyReport>) -> std::io::Result<W> {
+    /// Closes the document (JSON gets the fields of `summary`), flushes and returns the
+    /// writer.
+    pub fn finish(mut self, summary: &EstimatesSummary) -> std::io::Result<W> {
         if self.format == Format::Json {
-            let acc = serde_json::to_string(&accuracy).expect("accuracy serialises");
-            writeln!(self.out, "],\"accuracy\":{acc}}}")?;
+            let fields = serde_json::to_string(summary).expect("the summary serialises");
+            writeln!(self.out, "],{}", &fields[1..])?;
         }
         self.out.flush()?;
         Ok(self.out)
@@ -297,9 +367,9 @@ impl<W: Write> EstimatesWriter<W> {
 
 impl EstimatesWriter<Output> {
     /// [`EstimatesWriter::finish`], then commits the output (renames a file into place).
-    pub fn commit(self, accuracy: Option<&AccuracyReport>) -> Result<()> {
+    pub fn commit(self, summary: &EstimatesSummary) -> Result<()> {
         let name = self.out.name();
-        let out = self.finish(accuracy).map_err(|e| Error::io(name, e))?;
+        let out = self.finish(summary).map_err(|e| Error::io(name, e))?;
         out.commit()
     }
 }
@@ -313,6 +383,9 @@ struct StepBatch {
     p: Vec<f64>,
     /// One covariance band per step, for a writer with cross-covariance columns.
     bands: Vec<SymBand>,
+    /// `π` of `count` steps (NaN for a step without), for a writer with the `arrival`
+    /// column.
+    arrival: Vec<f64>,
 }
 
 /// Rows handed to the writer thread at a time, at least (short chains batch several steps, so
@@ -329,6 +402,7 @@ pub struct BackgroundWriter<W: Write + Send + 'static = Output> {
     current: Option<StepBatch>,
     /// Steps per batch, and the numbers of one step.
     per_batch: usize,
+    rows: usize,
     step_x: usize,
     step_p: usize,
     thread: Option<std::thread::JoinHandle<std::io::Result<EstimatesWriter<W>>>>,
@@ -337,17 +411,12 @@ pub struct BackgroundWriter<W: Write + Send + 'static = Output> {
 }
 
 impl<W: Write + Send + 'static> BackgroundWriter<W> {
-    /// Starts the thread for steps of `rows` rows with `step_x` and `step_p` numbers
-    /// (`N·n`, `N·n²`).
-    /// With `band = Some((N, n, width))` each step also carries a covariance band.
-    pub fn new(
-        mut writer: EstimatesWriter<W>,
-        rows: usize,
-        step_x: usize,
-        step_p: usize,
-        band: Option<(usize, usize, usize)>,
-    ) -> Self {
+    /// Starts the thread for steps of `rows` rows (`N`), with the columns of `writer`.
+    pub fn new(mut writer: EstimatesWriter<W>, rows: usize) -> Self {
         use std::sync::atomic::Ordering;
+        let columns = writer.columns();
+        let n = columns.n;
+        let (step_x, step_p) = (rows * n, rows * n * n);
         let per_batch = BATCH_MIN_ROWS.div_ceil(rows.max(1));
         let (to_writer, from_caller) = std::sync::mpsc::sync_channel::<StepBatch>(2);
         let (to_caller, free) = std::sync::mpsc::sync_channel::<StepBatch>(2);
@@ -357,9 +426,13 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
                 count: 0,
                 x: vec![0.0; per_batch * step_x],
                 p: vec![0.0; per_batch * step_p],
-                bands: band.map_or_else(Vec::new, |(nb, bs, w)| {
-                    (0..per_batch).map(|_| SymBand::zeros(nb, bs, w)).collect()
-                }),
+                bands: if columns.cross > 0 {
+                    let band = || SymBand::zeros(rows, n, columns.cross);
+                    (0..per_batch).map(|_| band()).collect()
+                } else {
+                    Vec::new()
+                },
+                arrival: vec![0.0; if columns.arrival { per_batch * rows } else { 0 }],
             };
             to_caller.send(batch).expect("the channel has room");
         }
@@ -376,6 +449,7 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
                             &batch.x[k * step_x..(k + 1) * step_x],
                             &batch.p[k * step_p..(k + 1) * step_p],
                             batch.bands.get(k),
+                            batch.arrival.get(k * rows..(k + 1) * rows),
                         )?;
                     }
                     busy_thread.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -390,6 +464,7 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
             free,
             current: None,
             per_batch,
+            rows,
             step_x,
             step_p,
             thread: Some(thread),
@@ -406,6 +481,7 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         x: &[f64],
         p: &[f64],
         band: Option<&SymBand>,
+        arrival: Option<&[f64]>,
     ) -> std::io::Result<()> {
         let mut batch = match self.current.take() {
             Some(batch) => batch,
@@ -423,6 +499,12 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         batch.p[k * self.step_p..(k + 1) * self.step_p].copy_from_slice(p);
         if let (Some(dst), Some(src)) = (batch.bands.get_mut(k), band) {
             dst.copy_band_from(src);
+        }
+        if let Some(dst) = batch.arrival.get_mut(k * self.rows..(k + 1) * self.rows) {
+            match arrival {
+                Some(src) => dst.copy_from_slice(src),
+                None => dst.fill(f64::NAN),
+            }
         }
         batch.count += 1;
         if batch.count < self.per_batch {
@@ -483,22 +565,82 @@ impl<W: Write + Send + 'static> Drop for BackgroundWriter<W> {
 mod tests {
     use super::*;
 
+    fn columns(n: usize) -> EstimatesColumns {
+        EstimatesColumns {
+            n,
+            cross: 0,
+            arrival: false,
+        }
+    }
+
     /// The writer thread, batching steps of short chains, writes the same bytes as the writer
-    /// called directly.
+    /// called directly, the `arrival` column included.
     #[test]
     fn background_writer_equals_direct_writer() {
         for (n, rows, steps) in [(2, 3, 2000), (1, 5000, 3), (3, 700, 20)] {
             let x: Vec<f64> = (0..rows * n).map(|k| (k as f64 * 0.3).cos()).collect();
             let p: Vec<f64> = (0..rows * n * n).map(|k| k as f64 / 9.0).collect();
-            let mut direct = EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, None).unwrap();
-            let writer = EstimatesWriter::new(Vec::new(), Format::Csv, n, 0, None).unwrap();
-            let mut background = BackgroundWriter::new(writer, rows, x.len(), p.len(), None);
-            for t in 1..=steps {
-                direct.write_step(t, &x, &p, None).unwrap();
-                background.write_step(t, &x, &p, None).unwrap();
+            let pi: Vec<f64> = (0..rows).map(|k| 1.0 / (1.0 + k as f64)).collect();
+            for arrival in [false, true] {
+                let columns = EstimatesColumns {
+                    arrival,
+                    ..columns(n)
+                };
+                let new = || EstimatesWriter::new(Vec::new(), Format::Csv, columns, None).unwrap();
+                let mut direct = new();
+                let mut background = BackgroundWriter::new(new(), rows);
+                for t in 1..=steps {
+                    // Every third step comes without π: an empty cell.
+                    let pi = (t % 3 != 0).then_some(pi.as_slice());
+                    direct.write_step(t, &x, &p, None, pi).unwrap();
+                    background.write_step(t, &x, &p, None, pi).unwrap();
+                }
+                let (writer, _) = background.finish().unwrap();
+                let summary = EstimatesSummary::default();
+                let bytes = writer.finish(&summary).unwrap();
+                assert!(bytes == direct.finish(&summary).unwrap());
+                let text = String::from_utf8(bytes).unwrap();
+                let header = text.lines().next().unwrap();
+                assert_eq!(header.ends_with(",arrival"), arrival);
+                if arrival {
+                    // Row (t = 1, i = 2) ends in π = 1/2; row (t = 3, i = 1) in an empty cell.
+                    assert!(text.lines().nth(2).unwrap().ends_with(",0.5"));
+                    assert!(text.lines().nth(2 * rows + 1).unwrap().ends_with(','));
+                }
             }
-            let (writer, _) = background.finish().unwrap();
-            assert!(writer.finish(None).unwrap() == direct.finish(None).unwrap());
+        }
+    }
+
+    /// The columns read back from their names are the columns written.
+    #[test]
+    fn columns_parse_their_header() {
+        for n in 1..=4 {
+            for cross in 0..=3 {
+                for arrival in [false, true] {
+                    let columns = EstimatesColumns { n, cross, arrival };
+                    let header = columns.header();
+                    assert_eq!(EstimatesColumns::parse(&header), Some(columns));
+                    assert_eq!(header.len(), 2 + columns.values());
+                    let mut renamed = header.clone();
+                    renamed[2] = "y1".into();
+                    assert_eq!(EstimatesColumns::parse(&renamed), None);
+                    // Without its last column, a header is another one only when that
+                    // column was `arrival`, or a whole 1 × 1 cross-covariance block.
+                    let without_last = EstimatesColumns::parse(&header[..header.len() - 1]);
+                    let expected = match (arrival, n, cross) {
+                        (true, _, _) => Some(EstimatesColumns {
+                            arrival: false,
+                            ..columns
+                        }),
+                        (false, 1, 1..) => Some(EstimatesColumns {
+                            cross: cross - 1,
+                            ..columns
+                        }),
+                        _ => None,
+                    };
+                    assert_eq!(without_last, expected);
+                }
+            }
         }
     }
 
@@ -535,10 +677,10 @@ mod tests {
                     .build()
                     .unwrap();
                 let bytes = pool.install(|| {
-                    let mut w = EstimatesWriter::new(Vec::new(), format, n, 0, None).unwrap();
-                    w.write_step(1, &x, &p, None).unwrap();
-                    w.write_step(2, &x, &p, None).unwrap();
-                    w.finish(None).unwrap()
+                    let mut w = EstimatesWriter::new(Vec::new(), format, columns(n), None).unwrap();
+                    w.write_step(1, &x, &p, None, None).unwrap();
+                    w.write_step(2, &x, &p, None, None).unwrap();
+                    w.finish(&EstimatesSummary::default()).unwrap()
                 });
                 let header = match format {
                     Format::Csv => "t,i,x1,x2,P1_1,P1_2,P2_2\n".to_string(),
@@ -549,7 +691,7 @@ mod tests {
                 let mut want = header.into_bytes();
                 want.extend_from_slice(&expected);
                 if format == Format::Json {
-                    want.extend_from_slice(b"],\"accuracy\":null}\n");
+                    want.extend_from_slice(b"],\"accuracy\":null,\"detection\":null}\n");
                 }
                 assert!(bytes == want, "{format:?} with {threads} threads");
             }

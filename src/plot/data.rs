@@ -9,7 +9,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::io::StepReader;
-use crate::io::estimates::{EstimatesDocument, estimates_header};
+use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
 type CsvReader = StepReader<Box<dyn Read>>;
@@ -156,32 +156,31 @@ enum EstimatesSource {
     },
 }
 
-/// An estimates file (docs/theory.md §13): `t,i,x1..xn,P1_1,P1_2..Pn_n`, as CSV or as the JSON of
+/// An estimates file (docs/theory.md §13): `t,i,x1..xn,P1_1,P1_2..Pn_n`, in JSON perhaps
+/// with cross-covariance columns, perhaps with `arrival` last; as CSV or as the JSON of
 /// `estimate --format json` (chosen by the extension `.json`).
 pub struct EstimatesFile {
     source: EstimatesSource,
     name: String,
+    columns: EstimatesColumns,
     /// State dimension `n`.
     pub n: usize,
     /// Chain length `N`.
     pub subsystems: usize,
 }
 
-/// The `n` whose estimates header has `columns` columns: `2 + n + n(n+1)/2`.
-fn estimates_n(columns: usize) -> Option<usize> {
-    (1..=columns).find(|&n| 2 + n + n * (n + 1) / 2 == columns)
-}
-
 impl EstimatesFile {
     pub fn open(path: &Path) -> Result<Self> {
         let name = display_name(path);
-        let header_error = |found: &[String]| Error::Csv {
-            file: name.clone(),
-            line: 1,
-            msg: format!(
-                "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (docs/theory.md §13), found `{}`",
-                found.join(",").escape_debug()
-            ),
+        let columns_of = |found: &[String]| {
+            EstimatesColumns::parse(found).ok_or_else(|| Error::Csv {
+                file: name.clone(),
+                line: 1,
+                msg: format!(
+                    "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (docs/theory.md §13), found `{}`",
+                    found.join(",").escape_debug()
+                ),
+            })
         };
         if path
             .extension()
@@ -195,9 +194,7 @@ impl EstimatesFile {
                         "not the JSON of `sisfilt estimate --format json` (expected its metadata, `columns` and `estimates`): {e}"
                     ),
                 })?;
-            let n = estimates_n(doc.columns.len())
-                .filter(|&n| doc.columns == estimates_header(n))
-                .ok_or_else(|| header_error(&doc.columns))?;
+            let columns = columns_of(&doc.columns)?;
             let first_t = doc.estimates.first().and_then(|r| r.first().copied());
             let subsystems = doc
                 .estimates
@@ -217,26 +214,19 @@ impl EstimatesFile {
                     next_t: 1,
                 },
                 name,
-                n,
+                columns,
+                n: columns.n,
                 subsystems,
             });
         }
         let (header, subsystems) = probe_csv(path)?;
-        let n = estimates_n(header.len())
-            .filter(|&n| header == estimates_header(n))
-            .ok_or_else(|| header_error(&header))?;
-        let reader = StepReader::with_header(
-            &name,
-            open(path)?,
-            estimates_header(n),
-            false,
-            "",
-            subsystems,
-        )?;
+        let columns = columns_of(&header)?;
+        let reader = StepReader::with_header(&name, open(path)?, header, false, "", subsystems)?;
         Ok(Self {
             source: EstimatesSource::Csv(Box::new(reader)),
             name,
-            n,
+            columns,
+            n: columns.n,
             subsystems,
         })
     }
@@ -246,9 +236,9 @@ impl EstimatesFile {
         &self.name
     }
 
-    /// Values per row: `n + n(n+1)/2`.
+    /// Values per row: `n + n(n+1)/2`, the cross-covariance blocks, `arrival`.
     pub fn row_width(&self) -> usize {
-        self.n + self.n * (self.n + 1) / 2
+        self.columns.values()
     }
 
     /// Position of `P_kk` (0-based `k`) in a row of [`EstimatesFile::read_step`].
@@ -297,9 +287,17 @@ impl EstimatesFile {
                             "expected t = {t}, i = {i} (rows are ordered by t then i)"
                         )));
                     }
+                    // Estimates and covariances must be numbers; a missing cross-covariance
+                    // block or π is null.
+                    let own = self.n + self.n * (self.n + 1) / 2;
                     for (k, v) in row[2..].iter().enumerate() {
-                        out[(i - 1) * width + k] =
-                            v.ok_or_else(|| bad("a value is null (not a finite number)".into()))?;
+                        out[(i - 1) * width + k] = match v {
+                            Some(v) => *v,
+                            None if k >= own => f64::NAN,
+                            None => {
+                                return Err(bad("a value is null (not a finite number)".into()));
+                            }
+                        };
                     }
                     *row_number += 1;
                 }
@@ -360,12 +358,10 @@ pub fn drawable_error(t: usize, i: usize, estimate: f64, truth: f64) -> Result<f
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::io::estimates::estimates_header;
 
     #[test]
     fn estimates_layout() {
-        assert_eq!(estimates_n(2 + 2 + 3), Some(2));
-        assert_eq!(estimates_n(2 + 3 + 6), Some(3));
-        assert_eq!(estimates_n(6), None);
         // Against the column names of the header the writer uses.
         for n in 1..=6 {
             let header = estimates_header(n);
