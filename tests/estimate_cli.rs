@@ -665,7 +665,7 @@ fn json_output_carries_the_csv_numbers_and_metadata() {
         assert_eq!(typed.metadata.n, n);
         assert_eq!(typed.metadata.config.sha256, config_sha);
         let mut metadata = v.as_object().unwrap().clone();
-        for key in ["columns", "estimates", "accuracy", "detection"] {
+        for key in ["columns", "estimates", "accuracy", "detection", "loglik"] {
             metadata.remove(key);
         }
         assert_eq!(
@@ -1366,6 +1366,9 @@ fn mixture_update_detects_lost_measurements() {
             assert_eq!(doc["options"]["update"], "mixture", "{what}");
             assert_eq!(linear["options"]["update"], "linear", "{what}");
             assert!(linear["detection"].is_null(), "{what}: linear has no π");
+            // Nahi's update with unknown dropouts has no density; the mixture update has one.
+            assert!(linear["loglik"].is_null(), "{what}");
+            assert!(doc["loglik"].as_f64().is_some_and(f64::is_finite), "{what}");
 
             let columns = doc["columns"].as_array().unwrap();
             assert_eq!(columns.last().unwrap(), "arrival", "{what}");
@@ -1474,4 +1477,50 @@ fn mixture_update_refuses_known_dropouts_and_smoothing() {
         let msg = one_error_line(&out);
         assert!(msg.contains(fragment), "{msg}");
     }
+}
+
+/// With known dropouts the log-likelihood of the measurements is in the JSON and, with
+/// `--verbose`, on an `info:` line; the joint filter at full band gives the centralized
+/// filter's (exact) value.
+#[test]
+fn known_dropout_log_likelihood_is_reported() {
+    let config = shipped("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &["--mark-missing"]);
+    let meas = dir.path().join("measurements.csv");
+    let loglik = |extra: &[&str]| {
+        let out = ok(estimate(
+            &config,
+            &meas,
+            &["--dropouts", "known", "--format", "json", "-v"],
+        )
+        .args(extra));
+        let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let value = doc["loglik"].as_f64().expect("a loglik number");
+        let line = stderr_lines(&out)
+            .into_iter()
+            .find(|l| l.starts_with("info: log-likelihood of the measurements: "))
+            .expect("an info line");
+        assert!(
+            line.contains(&format!("{value:.6e}")),
+            "{line} against {value}"
+        );
+        value
+    };
+    let central = loglik(&["--filter", "centralized"]);
+    let joint = loglik(&[
+        "--filter",
+        "joint",
+        "--band",
+        "19",
+        "--band-tol",
+        "0",
+        "--loading",
+        "0",
+    ]);
+    assert!(
+        (central - joint).abs() < 1e-9 * central.abs(),
+        "{central} vs {joint}"
+    );
+    loglik(&[]);
 }

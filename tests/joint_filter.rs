@@ -131,6 +131,8 @@ fn a_eff_band_by_column_compression_equals_dense_a_eff() {
 struct Gap {
     x: f64,
     p: f64,
+    /// Of each step's log density of the measurements, relative to `max(1, |ℓ|)`.
+    loglik: f64,
 }
 
 fn compare(
@@ -141,7 +143,11 @@ fn compare(
     steps: usize,
 ) -> Gap {
     let run = simulate_run(model, 11);
-    let mut gap = Gap { x: 0.0, p: 0.0 };
+    let mut gap = Gap {
+        x: 0.0,
+        p: 0.0,
+        loglik: 0.0,
+    };
     for (t, (y, u)) in run.y.iter().zip(&run.u).take(steps).enumerate() {
         // Known mode: lose every measurement whose γ was 0, and a few more elements.
         let y: Vec<f64> = if known {
@@ -161,6 +167,13 @@ fn compare(
         };
         a.step(&y, u).unwrap();
         b.step(&y, u).unwrap();
+        match (a.log_likelihood(), b.log_likelihood()) {
+            (Some(la), Some(lb)) => {
+                gap.loglik = gap.loglik.max((la - lb).abs() / lb.abs().max(1.0));
+            }
+            (None, None) => {}
+            other => panic!("t = {}: log densities {other:?}", t + 1),
+        }
         for (predicted, (xa, pa), (xb, pb)) in [
             (false, a.filtered(), b.filtered()),
             (true, a.predicted(), b.predicted()),
@@ -201,7 +214,8 @@ fn full_band_models() -> Vec<(String, Model)> {
 }
 
 /// `--band N−1 --band-tol 0 --loading 0` is the centralized filter (docs/theory.md §8), with the `band`
-/// and the `lifted` moment, and in the known-dropout mode the lifted Kalman filter.
+/// and the `lifted` moment, and in the known-dropout mode the lifted Kalman filter, whose log
+/// density of each step's measurements the information form computes from determinants.
 #[test]
 fn full_band_equals_centralized_filter() {
     let models = full_band_models();
@@ -218,11 +232,14 @@ fn full_band_equals_centralized_filter() {
             let mut cent = CentralizedFilter::new(model, known, 1000).unwrap();
             let gap = compare(model, &mut joint, &mut cent, known, steps);
             assert!(
-                gap.x < 1e-9 && gap.p < 1e-9,
-                "{name}, {moment:?}, {dropouts:?}: relative gaps x {:e}, P {:e}",
+                gap.x < 1e-9 && gap.p < 1e-9 && gap.loglik < 1e-9,
+                "{name}, {moment:?}, {dropouts:?}: relative gaps x {:e}, P {:e}, log density {:e}",
                 gap.x,
-                gap.p
+                gap.p,
+                gap.loglik
             );
+            // The exact density is only that of the known-dropout model.
+            assert_eq!(joint.log_likelihood().is_some(), known, "{name}");
         }
     }
 }
@@ -253,6 +270,13 @@ fn full_band_mixture_equals_centralized_mixture_filter() {
             for (g, w) in a.iter().zip(b) {
                 assert!((g - w).abs() < 1e-9, "{name}, t = {}: π {g} vs {w}", t + 1);
             }
+            let (g, w) = (joint.log_likelihood(), cent.log_likelihood());
+            let (g, w) = (g.unwrap(), w.unwrap());
+            assert!(
+                (g - w).abs() < 1e-9 * w.abs().max(1.0),
+                "{name}, t = {}: log density {g} vs {w}",
+                t + 1
+            );
             for (x, z) in [
                 (joint.filtered(), cent.filtered()),
                 (joint.predicted(), cent.predicted()),

@@ -9,7 +9,7 @@ use sisfilt::choice::Choice;
 use sisfilt::evaluate::{EvaluateOptions, evaluate};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
-    TwoStepFilter, TwoStepOptions, Update,
+    TwoStepFilter, TwoStepOptions, Update, two_step,
 };
 use sisfilt::lifted::{LiftedMoments, LiftedSystem};
 use sisfilt::model::Model;
@@ -424,6 +424,7 @@ fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() 
             (1.0 - p) * log_gauss(&e0, m).exp(),
         );
         let pi = w1 / (w1 + w0);
+        let log_density = (w1 + w0).ln();
         undecided += usize::from((0.05..0.95).contains(&pi));
         let k = &t_cov * j.transpose() * s1.clone().try_inverse().unwrap();
         let g = &k * &e;
@@ -436,6 +437,14 @@ fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() 
         filter.step(y, u).unwrap();
         let arrival = filter.arrival().expect("the mixture update reports π");
         assert!((arrival[0] - pi).abs() < 1e-10, "t = {}: π", step + 1);
+        let got = filter
+            .log_likelihood()
+            .expect("the mixture update has a density");
+        assert!(
+            (got - log_density).abs() < 1e-10 * log_density.abs().max(1.0),
+            "t = {}: log density {got} vs {log_density}",
+            step + 1
+        );
         let close = |got: &[f64], want: &[f64], what: &str| {
             for (g, w) in got.iter().zip(want) {
                 assert!(
@@ -570,6 +579,9 @@ fn centralized_mixture_filter_for_one_subsystem_and_at_p_one() {
             let (a, b) = (central.arrival().unwrap(), other.arrival());
             if let Some(b) = b {
                 assert!((a[0] - b[0]).abs() < 1e-10, "t = {}: π", t + 1);
+                let (l, m) = (central.log_likelihood(), other.log_likelihood());
+                let (l, m) = (l.unwrap(), m.unwrap());
+                assert!((l - m).abs() < 1e-10 * m.abs().max(1.0), "t = {}", t + 1);
             }
             for (x, z) in [
                 (central.filtered(), other.filtered()),
@@ -591,5 +603,196 @@ fn centralized_mixture_filter_for_one_subsystem_and_at_p_one() {
             .unwrap()
             .with_mixture_update()
             .is_err()
+    );
+}
+
+/// One subsystem with two measurement rows, every measurement arriving (`p = 1`).
+fn single_two_rows() -> Model {
+    model_from(
+        &SINGLE
+            .replace("J = [[1.0, 0.3]]", "J = [[1.0, 0.3], [0.0, 1.0]]")
+            .replace("R = [[0.2]]", "R = [[0.2], [0.0]]")
+            .replace("M = [[0.3]]", "M = [[0.3, 0.05], [0.05, 0.2]]")
+            .replace("p = 0.6", "p = 1.0"),
+    )
+}
+
+/// Loses measurement elements on their own, in a pattern that covers none, some and all of
+/// a step's.
+fn lose_some(y: &[f64], t: usize) -> Vec<f64> {
+    y.iter()
+        .enumerate()
+        .map(|(k, &v)| if (k * 7 + t) % 3 == 0 { f64::NAN } else { v })
+        .collect()
+}
+
+/// The log-likelihood of the known-dropout filters for `N = 1`, `p = 1`, with some elements
+/// lost, is the textbook Kalman filter's innovations log-likelihood `Σ_t log N(ỹ_t; 0, S_t)`
+/// over the received elements (written here with dense inverses), step by step, for each of
+/// the three filters.
+#[test]
+fn known_dropout_log_likelihood_is_the_kalman_filters_for_one_subsystem() {
+    let model = single_two_rows();
+    let run = simulate_run(&model, 3);
+    let prm = model.param_set(0);
+    let (a, c, j, r, m, q) = (&prm.A, &prm.C, &prm.J, &prm.R, &prm.M, &prm.Q);
+    let known_two_step = TwoStepOptions {
+        dropouts: Dropouts::Known,
+        ..TwoStepOptions::default()
+    };
+    let mut filters: Vec<(&str, Box<dyn ChainFilter>)> = vec![
+        (
+            "distributed",
+            Box::new(TwoStepFilter::new(&model, known_two_step).unwrap()),
+        ),
+        (
+            "distributed, fixed-size kernel",
+            two_step(&model, known_two_step).unwrap(),
+        ),
+        (
+            "centralized",
+            Box::new(CentralizedFilter::new(&model, true, 100).unwrap()),
+        ),
+        (
+            "joint",
+            Box::new(
+                JointFilter::new(
+                    &model,
+                    JointOptions {
+                        dropouts: Dropouts::Known,
+                        ..JointOptions::default()
+                    },
+                )
+                .unwrap(),
+            ),
+        ),
+    ];
+    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
+    let mut p = model.initial_cov.clone();
+    let (mut total, mut totals) = (0.0, vec![0.0; filters.len()]);
+    let mut partial = 0;
+    for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
+        let t = t0 + 1;
+        let y = lose_some(y, t);
+        let u_vec = DVector::from_column_slice(u);
+        let obs: Vec<usize> = (0..2).filter(|&k| !y[k].is_nan()).collect();
+        partial += usize::from(obs.len() == 1);
+        let mut step_density = 0.0;
+        if !obs.is_empty() {
+            let h = j.select_rows(&obs);
+            let e = DVector::from_iterator(obs.len(), obs.iter().map(|&k| y[k] - (r * &u_vec)[k]))
+                - &h * &x;
+            let s = &h * &p * h.transpose() + m.select_rows(&obs).select_columns(&obs);
+            step_density = log_gauss(&e, &s);
+            let gain = &p * h.transpose() * s.try_inverse().unwrap();
+            x = &x + &gain * e;
+            p = (DMatrix::identity(2, 2) - &gain * &h) * &p;
+        }
+        total += step_density;
+        x = a * &x + c * &u_vec;
+        p = a * &p * a.transpose() + q;
+        for ((name, filter), sum) in filters.iter_mut().zip(&mut totals) {
+            filter.step(&y, u).unwrap();
+            let got = filter
+                .log_likelihood()
+                .expect("known dropouts have a density");
+            assert!(
+                (got - step_density).abs() < 1e-10 * step_density.abs().max(1.0),
+                "{name}, t = {t}: {got} vs {step_density}"
+            );
+            *sum += got;
+        }
+    }
+    assert!(partial > 0, "no step lost one element of two");
+    for ((name, _), sum) in filters.iter().zip(&totals) {
+        assert!(
+            (sum - total).abs() < 1e-9 * total.abs(),
+            "{name}: {sum} vs {total}"
+        );
+    }
+}
+
+/// The centralized known-dropout filter's log-likelihood is the log density of all received
+/// measurements at once, a Gaussian built here from the dense lifted matrices: the stacked
+/// states `X_1..X_T` have mean `μ_{t+1} = A_t μ_t + U_t u_t` and covariances
+/// `Cov(X_{t+1}, X_s) = A_t Cov(X_t, X_s)`, `Var(X_{t+1}) = A_t Var(X_t) A_tᵀ + Q`, and the
+/// received elements are `J x + R u + d`.
+#[test]
+fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
+    let model = model_from(CHAIN);
+    let run = simulate_run(&model, 5);
+    let (n, q, big_n) = (2, 2, model.subsystems);
+    let (size, steps) = (big_n * n, run.y.len());
+    let mut mean = DVector::zeros(steps * size);
+    let mut cov = DMatrix::zeros(steps * size, steps * size);
+    for i in 0..big_n {
+        mean.rows_mut(i * n, n)
+            .copy_from(&DVector::from_column_slice(model.initial_mean.as_slice()));
+        cov.view_mut((i * n, i * n), (n, n))
+            .copy_from(&model.initial_cov);
+    }
+    for t0 in 0..steps - 1 {
+        let (a, b) = dense_lifted(&model, t0 + 1);
+        let (now, next) = (t0 * size, (t0 + 1) * size);
+        let m_next = &a * mean.rows(now, size) + &b * DVector::from_column_slice(&run.u[t0]);
+        mean.rows_mut(next, size).copy_from(&m_next);
+        for s in 0..=t0 {
+            let c = &a * cov.view((now, s * size), (size, size));
+            cov.view_mut((next, s * size), (size, size)).copy_from(&c);
+            cov.view_mut((s * size, next), (size, size))
+                .copy_from(&c.transpose());
+        }
+        let mut v = &a * cov.view((now, now), (size, size)) * a.transpose();
+        for i in 0..big_n {
+            let qi = &model.params(t0 + 1, i + 1).Q;
+            let mut block = v.view_mut((i * n, i * n), (n, n));
+            block += qi;
+        }
+        v = (&v + v.transpose()) * 0.5;
+        cov.view_mut((next, next), (size, size)).copy_from(&v);
+    }
+    // The received elements: (t, k) with k = i·q + row.
+    let mut received = Vec::new();
+    let mut filter = CentralizedFilter::new(&model, true, 100).unwrap();
+    let mut loglik = 0.0;
+    for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
+        let y = lose_some(y, t0 + 1);
+        filter.step(&y, u).unwrap();
+        loglik += filter.log_likelihood().unwrap();
+        received.extend(
+            (0..big_n * q)
+                .filter(|&k| !y[k].is_nan())
+                .map(|k| (t0, k, y[k])),
+        );
+    }
+    let obs = received.len();
+    let mut h = DMatrix::zeros(obs, steps * size);
+    let mut noise = DMatrix::zeros(obs, obs);
+    let mut e = DVector::zeros(obs);
+    for (row, &(t0, k, y)) in received.iter().enumerate() {
+        let (i, kk) = (k / q, k % q);
+        let prm = model.params(t0 + 1, i + 1);
+        for c in 0..n {
+            h[(row, t0 * size + i * n + c)] = prm.J[(kk, c)];
+        }
+        e[row] = y - (&prm.R * DVector::from_column_slice(&run.u[t0][i..i + 1]))[kk];
+        for (col, &(t1, k1, _)) in received.iter().enumerate() {
+            if t1 == t0 && k1 / q == i {
+                noise[(row, col)] = prm.M[(kk, k1 % q)];
+            }
+        }
+    }
+    let e = e - &h * &mean;
+    let s = &h * &cov * h.transpose() + noise;
+    let l = s
+        .cholesky()
+        .expect("the measurements' covariance is positive definite");
+    let log_det: f64 = (0..obs).map(|k| 2.0 * l.l()[(k, k)].ln()).sum();
+    let white = l.l().solve_lower_triangular(&e).unwrap();
+    let dense =
+        -0.5 * (obs as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + white.norm_squared());
+    assert!(
+        (loglik - dense).abs() < 1e-9 * dense.abs(),
+        "filter {loglik} vs dense {dense} over {obs} measurements"
     );
 }

@@ -471,6 +471,7 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
     let mut x_true = vec![0.0; big_n * (n + 1)];
     let mut accuracy = Accuracy::new(n);
     let mut detection = Detection::default();
+    let mut loglik = 0.0;
     // With --predicted, row t is scored against the truth at t + 1.
     let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
     let mut warned_transfer = false;
@@ -495,6 +496,7 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
         };
         inputs_read?;
         clock.filter(|| filter.step(&y, &u))?;
+        loglik += filter.log_likelihood().unwrap_or(0.0);
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
             warn(format!(
@@ -548,7 +550,13 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
     let summary = EstimatesSummary {
         accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
         detection: (truth.is_some() && filter.arrival().is_some()).then(|| detection.report()),
+        loglik: filter.log_likelihood().map(|_| loglik),
     };
+    if let Some(loglik) = summary.loglik {
+        info(format!(
+            "log-likelihood of the measurements: {loglik:.6e} over {steps} steps"
+        ));
+    }
     report_summary(&summary);
     let busy = clock.write(|| -> Result<f64> {
         let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
@@ -657,6 +665,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     let summary = EstimatesSummary {
         accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
         detection: None,
+        loglik: None,
     };
     report_summary(&summary);
     Ok(writer.commit(&summary)?)

@@ -101,6 +101,17 @@ impl BandCholesky {
         specialise!(self.bs, factor_body(self, a))
     }
 
+    /// `log det Λ = 2 Σ_i Σ_r log (L_ii)_rr` of the last factored matrix.
+    pub fn log_det(&self) -> f64 {
+        let bs = self.bs;
+        (0..self.nb)
+            .map(|i| {
+                let lii = self.l_block(i, i);
+                (0..bs).map(|r| 2.0 * lii[r * bs + r].ln()).sum::<f64>()
+            })
+            .sum()
+    }
+
     /// A copy that can only [`solve_in_place`](Self::solve_in_place): `L` and the inverses
     /// of its diagonal blocks, without the selected inversion's `Eᵀ`, pivot inverses and
     /// window (about half the memory of a full clone), for keeping many factors.

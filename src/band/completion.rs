@@ -47,6 +47,10 @@ impl CompletionWorkspace {
 /// The first clique contributes `P_{C_0}⁻¹ = L⁻ᵀ L⁻¹` whole. Cost per block row
 /// `≈ ((k+1) bs)³/3`.
 ///
+/// Returns `log det Λ⁻¹`, the log-determinant of the completed covariance: by the same
+/// factors, `log det P_{C_0} + Σ_{j ≥ 1} (log det P_{C_j} − log det P_{S_{j−1}})`, twice the
+/// sum of the logarithms of `L`'s diagonal entries of block `j + k` (of all of `C_0`).
+///
 /// Fails with [`BandError::CliqueNotPositiveDefinite`] on the first clique whose block is
 /// not numerically positive definite (separators are leading blocks of cliques).
 pub fn completion_precision(
@@ -54,7 +58,7 @@ pub fn completion_precision(
     k: usize,
     out: &mut SymBand,
     ws: &mut CompletionWorkspace,
-) -> Result<(), BandError> {
+) -> Result<f64, BandError> {
     let (nb, bs) = (p.nb(), p.bs());
     let k = k.min(nb.saturating_sub(1));
     assert!(p.width() >= k, "the band of P is narrower than k");
@@ -65,7 +69,7 @@ pub fn completion_precision(
     );
     out.fill_zero();
     if nb == 0 {
-        return Ok(());
+        return Ok(0.0);
     }
     specialise_bk!(bs, k, completion_body(p, out, ws))
 }
@@ -77,8 +81,9 @@ fn completion_body(
     p: &SymBand,
     out: &mut SymBand,
     ws: &mut CompletionWorkspace,
-) -> Result<(), BandError> {
+) -> Result<f64, BandError> {
     let nb = p.nb();
+    let mut log_det = 0.0;
     let m = (k + 1) * bs;
     let a = &mut ws.chol[..m * m];
     let rows = &mut ws.rows[..m * m];
@@ -108,6 +113,7 @@ fn completion_body(
         }
         // Rows r0..m of L⁻¹: row r solves Lᵀ x = e_r, so x_i = 0 for i > r.
         let r0 = if j == 0 { 0 } else { k * bs };
+        log_det -= 2.0 * dinv[r0..m].iter().map(|d| d.ln()).sum::<f64>();
         for r in r0..m {
             let x = &mut rows[(r - r0) * m..(r - r0 + 1) * m];
             for t in r + 1..m {
@@ -141,5 +147,5 @@ fn completion_body(
             }
         }
     }
-    Ok(())
+    Ok(log_det)
 }

@@ -37,6 +37,9 @@ pub struct CentralizedFilter<'m> {
     /// With the mixture update (docs/theory.md §10): `π(t, i)` of the last step, and the
     /// workspace of one subsystem's pseudo-measurement.
     mixture: Option<(Vec<f64>, Workspace)>,
+    /// The log density of the last step's measurements (see
+    /// [`ChainFilter::log_likelihood`]).
+    log_likelihood: Option<f64>,
 }
 
 impl<'m> CentralizedFilter<'m> {
@@ -70,6 +73,7 @@ impl<'m> CentralizedFilter<'m> {
             block_filt: vec![0.0; big_n * n * n],
             block_pred: vec![0.0; big_n * n * n],
             mixture: None,
+            log_likelihood: None,
         })
     }
 
@@ -99,6 +103,7 @@ impl<'m> CentralizedFilter<'m> {
             return Ok(());
         };
         let window = model.window(t);
+        let mut log_likelihood = 0.0;
         let mut w_big = DMatrix::zeros(big_n * q, big_n * q);
         let mut j_big = DMatrix::zeros(big_n * q, size);
         let mut r = DVector::zeros(big_n * q);
@@ -129,6 +134,7 @@ impl<'m> CentralizedFilter<'m> {
                 });
             };
             arrival[i] = a.probability;
+            log_likelihood += a.loglik;
             w_big.view_mut((i * q, i * q), (q, q)).copy_from_slice(&w_i);
             j_big.view_mut((i * q, i * n), (q, n)).copy_from(&prm.J);
             r.rows_mut(i * q, q).copy_from_slice(&r_i);
@@ -151,6 +157,7 @@ impl<'m> CentralizedFilter<'m> {
         pf.copy_from(&t_mat);
         pf.gemm_tr(-1.0, &jt, &gain, 1.0);
         nahi::symmetrize(&mut pf);
+        self.log_likelihood = Some(log_likelihood);
         Ok(())
     }
 
@@ -211,22 +218,21 @@ impl<'m> CentralizedFilter<'m> {
                 }
             }
         }
-        let ok = nahi::kalman_update(
+        let log_density = nahi::kalman_update(
             &self.x_pred,
             &self.t_pred,
             &mut self.x_filt,
             &mut self.p_filt,
             CovarianceForm::Standard,
             &mut self.ws,
-        );
-        if !ok {
-            return Err(Error::Numerical {
-                t,
-                i: 0,
-                msg: "the centralized filter's innovation covariance is not positive definite"
-                    .into(),
-            });
-        }
+        )
+        .ok_or_else(|| Error::Numerical {
+            t,
+            i: 0,
+            msg: "the centralized filter's innovation covariance is not positive definite".into(),
+        })?;
+        // The lifted innovations are Gaussian only when the filter knows the dropouts.
+        self.log_likelihood = self.known.then_some(log_density);
         Ok(())
     }
 
@@ -291,6 +297,13 @@ impl ChainFilter for CentralizedFilter<'_> {
 
     fn arrival(&self) -> Option<&[f64]> {
         self.mixture.as_ref().map(|(a, _)| a.as_slice())
+    }
+
+    /// With known dropouts the exact `log N(Ỹ; 0, 𝒥 T 𝒥ᵀ + ℳ)` of the received elements of
+    /// the whole chain; with the mixture update the sum of each subsystem's density from its
+    /// marginal (docs/theory.md §10).
+    fn log_likelihood(&self) -> Option<f64> {
+        self.log_likelihood
     }
 }
 

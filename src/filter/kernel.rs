@@ -4,7 +4,7 @@
 //! `SMatrix`), which removes the per-call overhead of dynamic sizes for the common cases.
 //! Both compute exactly the formulas of [`crate::filter::nahi`] (docs/theory.md §4).
 
-use nalgebra::{DMatrix, SMatrix, SVector};
+use nalgebra::{Cholesky, Const, DMatrix, SMatrix, SVector};
 
 use crate::filter::nahi::{self, Measurement, Workspace};
 use crate::model::{Model, Params};
@@ -35,8 +35,9 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
     /// A gain of the right sizes, to be filled by [`LocalKernel::covariance_update`].
     fn new_gain(&self) -> Self::Gain;
     /// The Nahi update ([`nahi::update`]); `s` is the second moment `S` (`n × n`,
-    /// column-major; unused in the known-dropout mode). Returns `false` when `Σ` is not
-    /// positive definite.
+    /// column-major; unused in the known-dropout mode). Returns, in the known-dropout mode,
+    /// the log density of the received elements of `y` given the past (a value not to be
+    /// read in the unknown-dropout mode), or `None` when `Σ` is not positive definite.
     #[allow(clippy::too_many_arguments)]
     fn update(
         &mut self,
@@ -47,7 +48,7 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
         t_pred: &[f64],
         x_filt: &mut [f64],
         p_filt: &mut [f64],
-    ) -> bool;
+    ) -> Option<f64>;
     /// The covariance part of the unknown-dropout update: `H = p J`,
     /// `R_eff = M + p(1−p) J S Jᵀ`, the gain `L = T Hᵀ Σ⁻¹` into `gain` and `P(t|t)` (Joseph
     /// form) into `p_filt`. Returns `false` when `Σ` is not positive definite.
@@ -115,7 +116,7 @@ impl LocalKernel for DynamicKernel {
         t_pred: &[f64],
         x_filt: &mut [f64],
         p_filt: &mut [f64],
-    ) -> bool {
+    ) -> Option<f64> {
         let prm = &self.sets[set as usize];
         self.ws
             .second_moment_mut()
@@ -168,7 +169,7 @@ impl LocalKernel for DynamicKernel {
         gain.h.copy_from(&prm.J);
         gain.h.scale_mut(p);
         gain.w.copy_from(self.ws.gain_transposed());
-        ok
+        ok.is_some()
     }
 
     fn mean_update(gain: &DynamicGain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]) {
@@ -240,6 +241,13 @@ fn symmetrize<const N: usize>(m: &mut SMatrix<f64, N, N>) {
     }
 }
 
+/// The gain `L`, the Joseph-form `P(t|t)` and the Cholesky factor of `Σ`.
+type GainAndFactor<const N: usize, const Q: usize> = (
+    SMatrix<f64, N, Q>,
+    SMatrix<f64, N, N>,
+    Cholesky<f64, Const<Q>>,
+);
+
 impl<const N: usize, const Q: usize> FixedKernel<N, Q> {
     /// Gain and Joseph-form `P(t|t)` for the measurement model `H`, `R_eff`.
     #[inline(always)]
@@ -247,14 +255,14 @@ impl<const N: usize, const Q: usize> FixedKernel<N, Q> {
         h: &SMatrix<f64, Q, N>,
         reff: &SMatrix<f64, Q, Q>,
         t: &SMatrix<f64, N, N>,
-    ) -> Option<(SMatrix<f64, N, Q>, SMatrix<f64, N, N>)> {
+    ) -> Option<GainAndFactor<N, Q>> {
         let ht = h * t;
         let chol = (ht * h.transpose() + reff).cholesky()?;
         let l = chol.solve(&ht).transpose(); // W = Σ⁻¹ H T, L = Wᵀ
         let f = SMatrix::<f64, N, N>::identity() - l * h;
         let mut pf = f * t * f.transpose() + l * reff * l.transpose();
         symmetrize(&mut pf);
-        Some((l, pf))
+        Some((l, pf, chol))
     }
 
     /// `R_eff = M + p(1−p) J S Jᵀ`.
@@ -322,18 +330,16 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         t_pred: &[f64],
         x_filt: &mut [f64],
         p_filt: &mut [f64],
-    ) -> bool {
+    ) -> Option<f64> {
         let prm = &self.sets[set as usize];
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
         if !data.known {
             let h = prm.j * data.p;
             let reff = Self::reff(prm, data.p, s);
-            let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
-                return false;
-            };
+            let (l, pf, _) = Self::gain(&h, &reff, &t)?;
             Self::mean(&h, &l, data, x_pred, x_filt);
             p_filt.copy_from_slice(pf.as_slice());
-            return true;
+            return Some(0.0);
         }
         // Known dropouts: a lost row gets H_k = 0, ỹ_k = 0 and a unit row and column in
         // R_eff, so it contributes nothing (see nahi).
@@ -341,6 +347,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let mut reff = prm.m;
         let x = SVector::<f64, N>::from_column_slice(x_pred);
         let mut innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
+        let mut dropped = 0;
         for k in 0..Q {
             if data.y[k].is_nan() {
                 h.row_mut(k).fill(0.0);
@@ -348,15 +355,18 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
                 reff.column_mut(k).fill(0.0);
                 reff[(k, k)] = 1.0;
                 innov[k] = 0.0;
+                dropped += 1;
             }
         }
-        let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
-            return false;
-        };
+        let (l, pf, chol) = Self::gain(&h, &reff, &t)?;
         let xf = x + l * innov;
         x_filt.copy_from_slice(xf.as_slice());
         p_filt.copy_from_slice(pf.as_slice());
-        true
+        // log N(ỹ; 0, Σ) over the received rows (as in nahi::kalman_update).
+        let factor = chol.l_dirty();
+        let log_det: f64 = (0..Q).map(|k| 2.0 * factor[(k, k)].ln()).sum();
+        let whitened = factor.solve_lower_triangular(&innov)?;
+        Some(-0.5 * ((Q - dropped) as f64 * nahi::LN_2PI + log_det + whitened.norm_squared()))
     }
 
     fn covariance_update(
@@ -372,7 +382,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
         let h = prm.j * p;
         let reff = Self::reff(prm, p, s);
-        let Some((l, pf)) = Self::gain(&h, &reff, &t) else {
+        let Some((l, pf, _)) = Self::gain(&h, &reff, &t) else {
             return false;
         };
         gain.h = h;

@@ -43,6 +43,14 @@ pub trait ChainFilter {
     fn arrival(&self) -> Option<&[f64]> {
         None
     }
+    /// The log density of the last step's measurements given the past (docs/theory.md §10):
+    /// with the mixture update `Σ_i log(p e^ℓ₁ + (1−p) e^ℓ₀)`, with known dropouts the
+    /// Gaussian density of the received elements; `None` for Nahi's update with unknown
+    /// dropouts, whose measurements have no Gaussian density. Summed over the steps, the
+    /// log-likelihood of the measurements.
+    fn log_likelihood(&self) -> Option<f64> {
+        None
+    }
 }
 
 /// Checks the estimates of step `t` (`x̂`, `N·n` values, and the diagonal blocks of `P`,

@@ -90,6 +90,8 @@ pub struct Workspace {
     jp: DMatrix<f64>,
     b: DMatrix<f64>,
     jp_u: DVector<f64>,
+    /// Rows removed by [`Workspace::drop_row`] since the measurement model was set.
+    dropped: usize,
 }
 
 impl Workspace {
@@ -113,12 +115,14 @@ impl Workspace {
             jp: DMatrix::zeros(q, q),
             b: DMatrix::zeros(q, q),
             jp_u: DVector::zeros(q),
+            dropped: 0,
         }
     }
 
     /// The measurement model for [`kalman_update`]: `H` (`q × n`), `R_eff` (`q × q`) and the
     /// innovation `ỹ` (`q`).
     pub fn measurement_mut(&mut self) -> (&mut DMatrix<f64>, &mut DMatrix<f64>, &mut DVector<f64>) {
+        self.dropped = 0;
         (&mut self.h, &mut self.reff, &mut self.innov)
     }
 
@@ -135,6 +139,7 @@ impl Workspace {
         self.reff.column_mut(k).fill(0.0);
         self.reff[(k, k)] = 1.0;
         self.innov[k] = 0.0;
+        self.dropped += 1;
     }
 
     /// The second-moment matrix `S` to fill before [`update`].
@@ -159,8 +164,8 @@ pub struct Measurement<'a> {
 
 /// The Nahi update of one subsystem: from `x̂ = x_pred`, `T = t_pred` and the second moment
 /// in `ws` (see [`Workspace::second_moment_mut`]; unused in the known-dropout mode), writes
-/// `x̂(t|t)` into `x_filt` and `P(t|t)` into `p_filt`. Returns `false` when `Σ` is not
-/// positive definite.
+/// `x̂(t|t)` into `x_filt` and `P(t|t)` into `p_filt`. Returns what [`kalman_update`]
+/// returns.
 pub fn update(
     meas: &Measurement,
     x_pred: &[f64],
@@ -168,7 +173,7 @@ pub fn update(
     x_filt: &mut [f64],
     p_filt: &mut [f64],
     ws: &mut Workspace,
-) -> bool {
+) -> Option<f64> {
     let (q, n) = ws.h.shape();
     let p = meas.p;
     ws.h.copy_from(meas.j);
@@ -187,6 +192,7 @@ pub fn update(
         }
         ws.innov[k] = meas.y[k] - meas.ru[k] - hx;
     }
+    ws.dropped = 0;
     if meas.known {
         for k in 0..q {
             if meas.y[k].is_nan() {
@@ -208,8 +214,10 @@ pub enum CovarianceForm {
 
 /// The linear update shared by every filter of the crate, on the measurement model already in
 /// `ws` (`H`, `R_eff`, `ỹ`): `Σ = H T Hᵀ + R_eff`, `L = T Hᵀ Σ⁻¹` (Cholesky solve),
-/// `x̂(t|t) = x̂ + L ỹ`, and `P(t|t)` in the given form (symmetrised). Returns `false` when
-/// `Σ` is not positive definite.
+/// `x̂(t|t) = x̂ + L ỹ`, and `P(t|t)` in the given form (symmetrised). Returns
+/// `log N(ỹ; 0, Σ)` over the rows not dropped ([`Workspace::drop_row`]), the log density of
+/// the measurement given the past when it is Gaussian (known dropouts, docs/theory.md §5), or
+/// `None` when `Σ` is not positive definite.
 pub fn kalman_update(
     x_pred: &[f64],
     t_pred: &[f64],
@@ -217,7 +225,7 @@ pub fn kalman_update(
     p_filt: &mut [f64],
     form: CovarianceForm,
     ws: &mut Workspace,
-) -> bool {
+) -> Option<f64> {
     let (q, n) = ws.h.shape();
     let t_mat = DMatrixView::from_slice(t_pred, n, n);
     ws.ht.gemm(1.0, &ws.h, &t_mat, 0.0);
@@ -229,7 +237,7 @@ pub fn kalman_update(
     let sigma = std::mem::replace(&mut ws.sigma, DMatrix::zeros(0, 0));
     let Some(chol) = Cholesky::new(sigma) else {
         ws.sigma = DMatrix::zeros(q, q);
-        return false;
+        return None;
     };
     chol.solve_mut(&mut ws.w);
     ws.sigma = chol.unpack();
@@ -241,12 +249,15 @@ pub fn kalman_update(
         }
         x_filt[c] = acc;
     }
+    // A dropped row is a unit variance with ỹ_k = 0: it adds only −½ log 2π, taken back.
+    let log_density = log_density(&ws.sigma, &mut ws.innov) + 0.5 * ws.dropped as f64 * LN_2PI;
+    ws.dropped = 0;
     let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
     if form == CovarianceForm::Standard {
         p_mat.copy_from(&t_mat);
         p_mat.gemm_tr(-1.0, &ws.w, &ws.ht, 1.0);
         symmetrize(&mut p_mat);
-        return true;
+        return Some(log_density);
     }
     // Joseph form: F = I − L H, P = F T Fᵀ + L R_eff Lᵀ.
     ws.f.fill_with_identity();
@@ -257,7 +268,7 @@ pub fn kalman_update(
     ws.lr.gemm_tr(1.0, &ws.w, &ws.reff, 0.0);
     p_mat.gemm(1.0, &ws.lr, &ws.w, 1.0);
     symmetrize(&mut p_mat);
-    true
+    Some(log_density)
 }
 
 /// What the mixture update learnt of one measurement `y(t, i)`.
@@ -270,10 +281,10 @@ pub struct Arrival {
 }
 
 /// `log 2π`.
-const LN_2PI: f64 = 1.837_877_066_409_345_5;
+pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L`; `v` is overwritten by `L⁻¹ v`.
-fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
+pub(crate) fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
     let log_det: f64 = (0..l.nrows()).map(|k| 2.0 * l[(k, k)].ln()).sum();
     l.solve_lower_triangular_mut(v);
     -0.5 * (l.nrows() as f64 * LN_2PI + log_det + v.norm_squared())
@@ -514,7 +525,7 @@ mod tests {
             known: false,
         };
         let (mut xf, mut pf) = ([0.0], [0.0]);
-        assert!(update(&meas, &[x], &[t], &mut xf, &mut pf, &mut ws));
+        assert!(update(&meas, &[x], &[t], &mut xf, &mut pf, &mut ws).is_some());
         let sigma = m + p * p * j * j * t + p * (1.0 - p) * j * j * s;
         let gain = p * t * j / sigma; // L; K = a L
         let x_exp = x + gain * (y - p * j * x);
@@ -552,7 +563,7 @@ mod tests {
             p: 1.0,
             known: true,
         };
-        assert!(update(&meas, &x, &t, &mut xf, &mut pf, &mut ws));
+        assert!(update(&meas, &x, &t, &mut xf, &mut pf, &mut ws).is_some());
         // Textbook Kalman update on row 2 alone.
         let j2 = jm.row(1).into_owned();
         let tm = DMatrix::from_column_slice(2, 2, &t);
@@ -686,7 +697,7 @@ mod tests {
             known: false,
         };
         let (mut xk, mut pk) = (vec![0.0; 3], vec![0.0; 9]);
-        assert!(update(&meas, &x, t.as_slice(), &mut xk, &mut pk, &mut ws));
+        assert!(update(&meas, &x, t.as_slice(), &mut xk, &mut pk, &mut ws).is_some());
         for (a, b) in xf.iter().zip(&xk).chain(pf.iter().zip(&pk)) {
             assert!((a - b).abs() < 1e-12, "{xf:?} {pf:?} vs {xk:?} {pk:?}");
         }

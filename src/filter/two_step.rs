@@ -126,6 +126,9 @@ pub struct TwoStepFilter<'m, K: LocalKernel = DynamicKernel> {
     solver_error: f64,
     /// The mixture update's `π(t, i)` (`N`; empty with the linear update).
     arrival: Vec<f64>,
+    /// The log density of each subsystem's last measurement given the past (`N`), summed in
+    /// subsystem order by [`ChainFilter::log_likelihood`].
+    log_densities: Vec<f64>,
 }
 
 /// The preallocated state of one chunk's local work.
@@ -183,6 +186,7 @@ struct UpdateInputs<'a, G> {
 
 /// The local updates (Nahi's, or the mixture update with its `π` into `arrival`) and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
 /// (0-based). Returns the first subsystem whose `Σ` is not positive definite.
+#[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
     wk: &mut Worker<K>,
@@ -191,6 +195,7 @@ fn update_range<K: LocalKernel>(
     p_filt: &mut [f64],
     z: &mut [f64],
     arrival: &mut [f64],
+    log_densities: &mut [f64],
 ) -> FirstFailure {
     let model = inp.model;
     let d = model.dims;
@@ -226,7 +231,10 @@ fn update_range<K: LocalKernel>(
             let x_pred = &inp.x_pred[vi.clone()];
             let t_pred = &inp.t_pred[nn.clone()];
             match nahi::mixture_update(&meas, x_pred, t_pred, xf, pf, &mut wk.mixture) {
-                Some(a) => arrival[k] = a.probability,
+                Some(a) => {
+                    arrival[k] = a.probability;
+                    log_densities[k] = a.loglik;
+                }
                 None => return Some(i),
             }
         } else if let Some((gain, p_shared)) = inp.shared {
@@ -252,7 +260,7 @@ fn update_range<K: LocalKernel>(
                     }
                 }
             }
-            let ok = wk.kernel.update(
+            let Some(log_density) = wk.kernel.update(
                 set,
                 &data,
                 &wk.s_buf,
@@ -260,10 +268,10 @@ fn update_range<K: LocalKernel>(
                 &inp.t_pred[nn],
                 xf,
                 pf,
-            );
-            if !ok {
+            ) else {
                 return Some(i);
-            }
+            };
+            log_densities[k] = log_density;
         }
         // Step 1's right-hand side, from the estimate that feeds it (docs/theory.md §4).
         let zi = &mut z[k * s..(k + 1) * s];
@@ -477,6 +485,7 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
                 Update::Mixture => vec![0.0; big_n],
                 Update::Linear => Vec::new(),
             },
+            log_densities: vec![0.0; big_n],
         })
     }
 
@@ -575,9 +584,10 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 .zip(self.p_filt.par_chunks_mut(CHUNK * n * n))
                 .zip(par_chunks_or_empty(&mut self.z, CHUNK * s, chunks))
                 .zip(par_chunks_or_empty(&mut self.arrival, CHUNK, chunks))
+                .zip(self.log_densities.par_chunks_mut(CHUNK))
                 .enumerate()
-                .filter_map(|(c, ((((wk, xf), pf), z), a))| {
-                    update_range(&inp, wk, c * CHUNK, xf, pf, z, a)
+                .filter_map(|(c, (((((wk, xf), pf), z), a), l))| {
+                    update_range(&inp, wk, c * CHUNK, xf, pf, z, a, l)
                 })
                 .min()
         } else {
@@ -589,6 +599,7 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
                 &mut self.p_filt,
                 &mut self.z,
                 &mut self.arrival,
+                &mut self.log_densities,
             )
         };
         if let Some(i) = failed {
@@ -693,5 +704,15 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
 
     fn arrival(&self) -> Option<&[f64]> {
         (self.opts.update == Update::Mixture).then_some(self.arrival.as_slice())
+    }
+
+    /// Each subsystem's own density, summed: with the mixture update `Σ_i log(p e^ℓ₁ +
+    /// (1−p) e^ℓ₀)`, with known dropouts `Σ_i log N(ỹ_i; 0, Σ_i)` over the received rows
+    /// (docs/theory.md §10) — a composite of marginals, since the filter keeps no
+    /// cross-covariances.
+    fn log_likelihood(&self) -> Option<f64> {
+        let has_density =
+            self.opts.update == Update::Mixture || self.opts.dropouts == Dropouts::Known;
+        has_density.then(|| self.log_densities.iter().sum())
     }
 }

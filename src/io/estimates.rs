@@ -116,6 +116,11 @@ pub struct EstimatesSummary {
     /// With the mixture update and `--truth`: how well `π` detected the lost measurements.
     #[serde(default)]
     pub detection: Option<DetectionReport>,
+    /// The log-likelihood of the measurements, `Σ_t` of the filter's log density of step
+    /// `t` (docs/theory.md §10); `null` for Nahi's update with unknown dropouts, which has
+    /// none, and for the smoothers.
+    #[serde(default)]
+    pub loglik: Option<f64>,
 }
 
 /// A whole estimates JSON file: the metadata, the columns, the rows (`null` for a missing
@@ -691,7 +696,9 @@ mod tests {
                 let mut want = header.into_bytes();
                 want.extend_from_slice(&expected);
                 if format == Format::Json {
-                    want.extend_from_slice(b"],\"accuracy\":null,\"detection\":null}\n");
+                    want.extend_from_slice(
+                        b"],\"accuracy\":null,\"detection\":null,\"loglik\":null}\n",
+                    );
                 }
                 assert!(bytes == want, "{format:?} with {threads} threads");
             }

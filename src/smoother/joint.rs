@@ -366,6 +366,6 @@ impl Backward {
     ) -> std::result::Result<(), BandError> {
         self.loaded.copy_band_from(band);
         load_diagonal(&mut self.loaded, loading);
-        completion_precision(&self.loaded, band.width(), out, &mut self.completion)
+        completion_precision(&self.loaded, band.width(), out, &mut self.completion).map(|_| ())
     }
 }

@@ -15,11 +15,13 @@
 //! P⁻(t+1) = band_k(A_eff P̃⁺ A_effᵀ) + blkdiag(Q)                 b = half-width of A_eff
 //! ```
 
+mod information;
 mod schedule;
+
+use information::InfoWorkspace;
 
 pub use schedule::{JointSchedule, ScheduledJoint};
 
-use nalgebra::{Cholesky, DMatrix, DVector};
 use serde::Serialize;
 
 use crate::band::{
@@ -31,7 +33,7 @@ use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedMoments, LiftedSystem, LiftedWorkspace, a_eff_band, propagate_mean};
 use crate::linalg::mat_vec_add;
-use crate::model::{Model, Params};
+use crate::model::Model;
 
 /// Default `--band K`.
 pub const DEFAULT_BAND: usize = 2;
@@ -197,94 +199,6 @@ enum Moments {
     },
 }
 
-/// Dense scratch of one subsystem's measurement information (update step 2).
-struct InfoWorkspace {
-    h: DMatrix<f64>,
-    h_tr: DMatrix<f64>,
-    js: DMatrix<f64>,
-    reff: DMatrix<f64>,
-    w: DMatrix<f64>,
-    s: DMatrix<f64>,
-    innov: DVector<f64>,
-}
-
-impl InfoWorkspace {
-    fn new(n: usize, q: usize) -> Self {
-        Self {
-            h: DMatrix::zeros(q, n),
-            h_tr: DMatrix::zeros(n, q),
-            js: DMatrix::zeros(q, n),
-            reff: DMatrix::zeros(q, q),
-            w: DMatrix::zeros(q, n),
-            s: DMatrix::zeros(n, n),
-            innov: DVector::zeros(q),
-        }
-    }
-
-    /// Adds `Φ = Hᵀ R⁻¹ H` to `phi` (`n × n`) and writes `r = Hᵀ R⁻¹ ỹ`, with `H = p J`,
-    /// `R = M + p(1−p) J S Jᵀ` (`S` in `self.s`, unknown dropouts) and `ỹ = y − R u − H x̂⁻`.
-    /// In the known-dropout mode (`p = 1`) a NaN element of `y` removes its row. Returns false
-    /// when `R` is not positive definite.
-    #[allow(clippy::too_many_arguments)]
-    fn add(
-        &mut self,
-        prm: &Params,
-        p: f64,
-        known: bool,
-        y: &[f64],
-        u: &[f64],
-        x: &[f64],
-        phi: &mut [f64],
-        r: &mut [f64],
-    ) -> bool {
-        let (q, n) = self.h.shape();
-        self.h.copy_from(&prm.J);
-        self.h.scale_mut(p);
-        self.reff.copy_from(&prm.M);
-        if !known && p * (1.0 - p) != 0.0 {
-            self.h_tr.tr_copy_from(&prm.J);
-            self.js.gemm_tr(1.0, &self.h_tr, &self.s, 0.0);
-            self.reff.gemm(p * (1.0 - p), &self.js, &self.h_tr, 1.0);
-        }
-        nahi::innovation(prm, p, y, u, x, self.innov.as_mut_slice());
-        if known {
-            for k in 0..q {
-                if y[k].is_nan() {
-                    self.h.row_mut(k).fill(0.0);
-                    self.reff.row_mut(k).fill(0.0);
-                    self.reff.column_mut(k).fill(0.0);
-                    self.reff[(k, k)] = 1.0;
-                    self.innov[k] = 0.0;
-                }
-            }
-        }
-        // W = R⁻¹ H by a Cholesky solve (allocation-free: the factor reuses `reff`).
-        self.w.copy_from(&self.h);
-        let reff = std::mem::replace(&mut self.reff, DMatrix::zeros(0, 0));
-        let Some(chol) = Cholesky::new(reff) else {
-            self.reff = DMatrix::zeros(q, q);
-            return false;
-        };
-        chol.solve_mut(&mut self.w);
-        self.reff = chol.unpack();
-        for c in 0..n {
-            for rr in 0..n {
-                let mut acc = 0.0;
-                for k in 0..q {
-                    acc += self.h[(k, rr)] * self.w[(k, c)];
-                }
-                phi[c * n + rr] += acc;
-            }
-            let mut acc = 0.0;
-            for k in 0..q {
-                acc += self.w[(k, c)] * self.innov[k];
-            }
-            r[c] = acc;
-        }
-        true
-    }
-}
-
 /// `P_ii += ε (tr P_ii / n) I` on every diagonal block (docs/theory.md §8 "Loading").
 pub(crate) fn load_diagonal(p: &mut SymBand, eps: f64) {
     if eps == 0.0 {
@@ -358,6 +272,14 @@ pub struct JointFilter<'m> {
     block_pred: Vec<f64>,
     /// The mixture update's arrival probabilities and scratch (`--update mixture`).
     mixture: Option<Mixture>,
+    /// With known dropouts the information vector `𝒥ᵀ ℳ⁻¹ Ỹ` (before the solve overwrites
+    /// `r`) and `Σ_i log N(ỹ_i; 0, M_i)`; with the mixture update, the sum of the subsystems'
+    /// densities.
+    info_vector: Vec<f64>,
+    measurement_log_density: f64,
+    /// The log density of the last step's measurements (see
+    /// [`ChainFilter::log_likelihood`]).
+    log_likelihood: Option<f64>,
     /// When recording a [`JointSchedule`]: every subsystem's `R_i⁻¹ H_i` of the last step.
     recorded_gains: Option<Vec<f64>>,
     /// For the smoother (docs/theory.md §9): `Λ⁻(t)` and `Λ⁺(t)` of the last step.
@@ -445,6 +367,9 @@ impl<'m> JointFilter<'m> {
             mean_scratch: vec![0.0; big_n * n],
             block_filt: block_pred.clone(),
             block_pred,
+            info_vector: vec![0.0; if known { big_n * n } else { 0 }],
+            measurement_log_density: 0.0,
+            log_likelihood: None,
             recorded_gains: None,
             kept_precisions: None,
             mixture: mixture.then(|| Mixture {
@@ -497,6 +422,7 @@ impl<'m> JointFilter<'m> {
         let model = self.model;
         let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
         let window = model.window(self.t);
+        self.measurement_log_density = 0.0;
         if let Some(mix) = &mut self.mixture {
             // The mixture update's pseudo-measurements (docs/theory.md §10): Φ_i = Jᵀ W_i J
             // and Jᵀ r_i, from each subsystem's marginal of the loaded prior band.
@@ -530,6 +456,7 @@ impl<'m> JointFilter<'m> {
                     });
                 };
                 mix.arrival[i] = a.probability;
+                self.measurement_log_density += a.loglik;
                 let phi = self.lambda.block_mut(i, 0);
                 let r = &mut self.r[i * n..(i + 1) * n];
                 for c in 0..n {
@@ -563,7 +490,7 @@ impl<'m> JointFilter<'m> {
                 ),
                 Moments::Lifted { moments, .. } => moments.second_moment(i, n, &mut self.info.s),
             }
-            let ok = self.info.add(
+            let log_density = self.info.add(
                 prm,
                 p,
                 self.known,
@@ -573,13 +500,14 @@ impl<'m> JointFilter<'m> {
                 self.lambda.block_mut(i, 0),
                 &mut self.r[i * n..(i + 1) * n],
             );
-            if !ok {
+            let Some(log_density) = log_density else {
                 return Err(Error::Numerical {
                     t: self.t,
                     i: i + 1,
                     msg: "joint filter: the measurement covariance M + p(1−p) J S Jᵀ is not positive definite".into(),
                 });
-            }
+            };
+            self.measurement_log_density += log_density;
             if let Some(gains) = &mut self.recorded_gains {
                 gains[i * q * n..(i + 1) * q * n].copy_from_slice(self.info.w.as_slice());
             }
@@ -611,7 +539,7 @@ impl<'m> JointFilter<'m> {
                 mean.copy_from_slice(&self.mean_scratch);
                 completion_precision(cov, self.k, &mut self.lambda, &mut self.completion)
                     .map_err(|e| (e, "moment"))
-                    .and_then(|()| chol.factor(&self.lambda).map_err(|e| (e, "moment")))
+                    .and_then(|_| chol.factor(&self.lambda).map_err(|e| (e, "moment")))
                     .map_err(|(e, what)| band_error_at(t, self.loading, self.k, what, e))?;
                 chol.selected_inverse(completed);
                 sandwich(self.a_eff.band(), completed, cov, &mut self.sandwich);
@@ -716,8 +644,9 @@ impl ChainFilter for JointFilter<'_> {
         if let Moments::Band { cov, .. } = &mut self.moments {
             load_diagonal(cov, self.loading);
         }
-        completion_precision(&self.p_pred, self.k, &mut self.lambda, &mut self.completion)
-            .map_err(|e| self.band_error("prior", e))?;
+        let prior_log_det =
+            completion_precision(&self.p_pred, self.k, &mut self.lambda, &mut self.completion)
+                .map_err(|e| self.band_error("prior", e))?;
         if let Some((prior, _)) = &mut self.kept_precisions {
             prior.copy_band_from(&self.lambda);
         }
@@ -728,7 +657,11 @@ impl ChainFilter for JointFilter<'_> {
         self.chol
             .factor(&self.lambda)
             .map_err(|e| self.band_error("posterior", e))?;
+        if !self.info_vector.is_empty() {
+            self.info_vector.copy_from_slice(&self.r);
+        }
         self.chol.solve_in_place(&mut self.r);
+        self.log_likelihood = self.step_log_likelihood(prior_log_det);
         for ((xf, xp), dx) in self.x_filt.iter_mut().zip(&self.x_pred).zip(&self.r) {
             *xf = xp + dx;
         }
@@ -784,9 +717,34 @@ impl ChainFilter for JointFilter<'_> {
     fn arrival(&self) -> Option<&[f64]> {
         self.mixture.as_ref().map(|m| m.arrival.as_slice())
     }
+
+    fn log_likelihood(&self) -> Option<f64> {
+        self.log_likelihood
+    }
 }
 
 impl JointFilter<'_> {
+    /// The log density of this step's measurements (docs/theory.md §10), after the solve. With
+    /// known dropouts, exact for the filter's prior `N(X̂⁻, Σ̃)` (`Σ̃` the completion of the
+    /// band, `Λ⁻ = Σ̃⁻¹`): `S = 𝒥 Σ̃ 𝒥ᵀ + ℳ` has `log det S = log det ℳ + log det Σ̃ +
+    /// log det Λ⁺` and `Ỹᵀ S⁻¹ Ỹ = Ỹᵀ ℳ⁻¹ Ỹ − bᵀ (Λ⁺)⁻¹ b` with `b = 𝒥ᵀ ℳ⁻¹ Ỹ`, so
+    /// `ℓ = Σ_i log N(ỹ_i; 0, M_i) − ½ (log det Σ̃ + log det Λ⁺ − bᵀ (Λ⁺)⁻¹ b)`.
+    fn step_log_likelihood(&self, prior_log_det: f64) -> Option<f64> {
+        if self.mixture.is_some() {
+            return Some(self.measurement_log_density);
+        }
+        if !self.known {
+            return None;
+        }
+        let explained: f64 = self
+            .info_vector
+            .iter()
+            .zip(&self.r)
+            .map(|(b, x)| b * x)
+            .sum();
+        Some(self.measurement_log_density - 0.5 * (prior_log_det + self.chol.log_det() - explained))
+    }
+
     /// True when the posterior band is narrower than the current `A_eff` needs (after a
     /// rebuild elsewhere); kept separate so that the common path tests one integer.
     fn sandwich_stale(&self) -> bool {
