@@ -376,13 +376,15 @@ def write(results, out_md):
         for name, ns, elems in crit:
             lines.append(f"| {name} | {ns / 1e6:.3f} ms | {fmt_rate(elems / (ns * 1e-9))} elements/s |")
     lines.append("")
-    # The joint filter's section (issue 10) is measured by `cargo bench --bench joint` and kept
-    # in bench/joint.md; it is carried over verbatim.
-    joint = os.path.join(os.path.dirname(os.path.abspath(__file__)), "joint.md")
-    if os.path.exists(joint):
-        with open(joint) as f:
-            lines.append(f.read().rstrip("\n"))
-        lines.append("")
+    # Sections measured by hand with criterion and kept beside this script, carried over
+    # verbatim: the joint filter's (issue 10, `cargo bench --bench joint`) and the mixture
+    # update's (issue 25, the `update` and `joint_update` groups).
+    for section in ["joint.md", "mixture.md"]:
+        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), section)
+        if os.path.exists(path):
+            with open(path) as f:
+                lines.append(f.read().rstrip("\n"))
+            lines.append("")
     with open(out_md, "w") as f:
         f.write("\n".join(lines))
     for a, b, c, d in rows:

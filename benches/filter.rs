@@ -5,7 +5,9 @@
 //!   subsystem-steps per second;
 //! - `scaling`: N = 10²…10⁵ on one thread, for the linear-scaling fit (time per element flat);
 //! - `sharing`: the shared covariance recursions against per-subsystem ones (`local`, `paper`);
-//! - `centralized_vs_distributed`: time per step for N = 10, 30, 100, 300 (elements = steps).
+//! - `centralized_vs_distributed`: time per step for N = 10, 30, 100, 300 (elements = steps);
+//! - `update`: the distributed filter with Nahi's (`linear`) and the mixture update
+//!   (docs/theory.md §10) on W (N = 10⁴), one thread.
 //!
 //! Inputs are simulated once per size, outside the timed routine (`iter_batched` builds a
 //! fresh filter per batch).
@@ -14,7 +16,7 @@ use criterion::{BatchSize, BenchmarkId, Criterion, Throughput, criterion_group, 
 use sisfilt::config::ConfigSource;
 use sisfilt::filter::kernel::FixedKernel;
 use sisfilt::filter::{
-    CentralizedFilter, ChainFilter, SecondMoment, TwoStepFilter, TwoStepOptions, two_step,
+    CentralizedFilter, ChainFilter, SecondMoment, TwoStepFilter, TwoStepOptions, Update, two_step,
 };
 use sisfilt::inputs::InputStream;
 use sisfilt::model::Model;
@@ -183,5 +185,41 @@ fn centralized_vs_distributed(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, core, scaling, sharing, centralized_vs_distributed);
+fn update(c: &mut Criterion) {
+    let (n_sub, steps) = (10_000, 20);
+    let model = workload(n_sub, steps);
+    let (ys, us) = data(&model);
+    let mut group = c.benchmark_group("update");
+    group.sample_size(20);
+    group.throughput(Throughput::Elements((n_sub * steps) as u64));
+    let pool = pool(1);
+    for (name, update) in [("linear", Update::Linear), ("mixture", Update::Mixture)] {
+        let opts = TwoStepOptions {
+            update,
+            ..TwoStepOptions::default()
+        };
+        group.bench_function(BenchmarkId::new("distributed", name), |b| {
+            pool.install(|| {
+                b.iter_batched(
+                    || Fast::with_kernel(&model, opts).unwrap(),
+                    |mut f| {
+                        run(&mut f, &ys, &us);
+                        f
+                    },
+                    BatchSize::LargeInput,
+                )
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    core,
+    scaling,
+    sharing,
+    centralized_vs_distributed,
+    update
+);
 criterion_main!(benches);

@@ -4,7 +4,9 @@
 //! - `joint_filter`: N = 10, 30, 10², 10³, 10⁴ (time per element flat means linear in N), beside the
 //!   two-step filter on the same chain, and the centralized filter for N ≤ 10²;
 //! - `joint_smoother`: forward and backward pass, N = 10², 10³, 10⁴ (its ratio to the filter
-//!   and its exponent in N; at N = 10⁴ a run takes seconds, so its ten samples take a minute).
+//!   and its exponent in N; at N = 10⁴ a run takes seconds, so its ten samples take a minute);
+//! - `joint_update`: the joint filter with Nahi's (`linear`) and the mixture update
+//!   (docs/theory.md §10), N = 10³.
 //!
 //! Inputs are simulated once per size, outside the timed routine. Run with
 //! `RAYON_NUM_THREADS=1` for one-core figures (the joint filter itself is sequential).
@@ -14,7 +16,7 @@ use criterion::{
 };
 use sisfilt::config::ConfigSource;
 use sisfilt::filter::{
-    CentralizedFilter, ChainFilter, JointFilter, JointOptions, TwoStepOptions, two_step,
+    CentralizedFilter, ChainFilter, JointFilter, JointOptions, TwoStepOptions, Update, two_step,
 };
 use sisfilt::inputs::InputStream;
 use sisfilt::model::Model;
@@ -109,5 +111,28 @@ fn joint_smoother(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, joint_filter, joint_smoother);
+fn joint_update(c: &mut Criterion) {
+    let mut g = c.benchmark_group("joint_update");
+    g.sample_size(10);
+    let big_n = 1000;
+    let model = chain(big_n);
+    let (ys, us) = data(&model);
+    g.throughput(Throughput::Elements((big_n * STEPS) as u64));
+    for (name, update) in [("linear", Update::Linear), ("mixture", Update::Mixture)] {
+        let opts = JointOptions {
+            update,
+            ..JointOptions::default()
+        };
+        g.bench_function(BenchmarkId::new("joint", name), |b| {
+            b.iter_batched(
+                || JointFilter::new(&model, opts).unwrap(),
+                |mut f| run(&mut f, &ys, &us),
+                BatchSize::LargeInput,
+            )
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, joint_filter, joint_smoother, joint_update);
 criterion_main!(benches);

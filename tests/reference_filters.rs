@@ -402,7 +402,8 @@ fn log_gauss(v: &DVector<f64>, s: &DMatrix<f64>) -> f64 {
 
 /// For one subsystem (no interconnection, `v = 0`) the distributed mixture filter is a
 /// textbook filter with the mixture update, written here with dense inverses: per step `π`,
-/// `x̂(t|t)`, `P(t|t)`, `x̂(t+1|t)` and `T(t+1)` agree to 1e−10.
+/// the log density, `x̂(t|t)`, `P(t|t)`, `x̂(t+1|t)` and `T(t+1)` agree to 1e−10, with the
+/// dynamic and with the fixed-size kernel.
 #[test]
 fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() {
     let model = model_from(SINGLE);
@@ -412,7 +413,15 @@ fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() 
     let p = 0.6;
     let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
     let mut t_cov = model.initial_cov.clone();
-    let mut filter = mixture_filter(&model);
+    let mut dynamic = mixture_filter(&model);
+    let mut fixed = two_step(
+        &model,
+        TwoStepOptions {
+            update: Update::Mixture,
+            ..TwoStepOptions::default()
+        },
+    )
+    .unwrap();
     let mut undecided = 0;
     for (step, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
         let u_vec = DVector::from_column_slice(u);
@@ -434,30 +443,32 @@ fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() 
         x = a * &x_filt + c * &u_vec;
         t_cov = a * &p_filt * a.transpose() + q;
 
-        filter.step(y, u).unwrap();
-        let arrival = filter.arrival().expect("the mixture update reports π");
-        assert!((arrival[0] - pi).abs() < 1e-10, "t = {}: π", step + 1);
-        let got = filter
-            .log_likelihood()
-            .expect("the mixture update has a density");
-        assert!(
-            (got - log_density).abs() < 1e-10 * log_density.abs().max(1.0),
-            "t = {}: log density {got} vs {log_density}",
-            step + 1
-        );
-        let close = |got: &[f64], want: &[f64], what: &str| {
-            for (g, w) in got.iter().zip(want) {
-                assert!(
-                    (g - w).abs() < 1e-10,
-                    "t = {}: {what} {got:?} vs {want:?}",
-                    step + 1
-                );
-            }
-        };
-        close(filter.filtered().0, x_filt.as_slice(), "x̂(t|t)");
-        close(filter.filtered().1, p_filt.as_slice(), "P(t|t)");
-        close(filter.predicted().0, x.as_slice(), "x̂(t+1|t)");
-        close(filter.predicted().1, t_cov.as_slice(), "T(t+1)");
+        for filter in [&mut dynamic as &mut dyn ChainFilter, fixed.as_mut()] {
+            filter.step(y, u).unwrap();
+            let arrival = filter.arrival().expect("the mixture update reports π");
+            assert!((arrival[0] - pi).abs() < 1e-10, "t = {}: π", step + 1);
+            let got = filter
+                .log_likelihood()
+                .expect("the mixture update has a density");
+            assert!(
+                (got - log_density).abs() < 1e-10 * log_density.abs().max(1.0),
+                "t = {}: log density {got} vs {log_density}",
+                step + 1
+            );
+            let close = |got: &[f64], want: &[f64], what: &str| {
+                for (g, w) in got.iter().zip(want) {
+                    assert!(
+                        (g - w).abs() < 1e-10,
+                        "t = {}: {what} {got:?} vs {want:?}",
+                        step + 1
+                    );
+                }
+            };
+            close(filter.filtered().0, x_filt.as_slice(), "x̂(t|t)");
+            close(filter.filtered().1, p_filt.as_slice(), "P(t|t)");
+            close(filter.predicted().0, x.as_slice(), "x̂(t+1|t)");
+            close(filter.predicted().1, t_cov.as_slice(), "T(t+1)");
+        }
     }
     assert!(undecided > 0, "no step left the hypotheses undecided");
 }

@@ -61,6 +61,18 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
         p_filt: &mut [f64],
         gain: &mut Self::Gain,
     ) -> bool;
+    /// The mixture update of docs/theory.md §10 ([`nahi::mixture_update`], unknown dropouts,
+    /// `data.p` the prior arrival probability). Returns `π` and the log density, or `None`
+    /// when `S₁` or `M` is not positive definite.
+    fn mixture_update(
+        &mut self,
+        set: u32,
+        data: &LocalData,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+    ) -> Option<nahi::Arrival>;
     /// The mean part: `x̂(t|t) = x̂ + L (y − R u − H x̂)`.
     fn mean_update(gain: &Self::Gain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]);
     /// `out = A X Aᵀ + Q` (or without `Q`), symmetrised.
@@ -172,6 +184,27 @@ impl LocalKernel for DynamicKernel {
         ok.is_some()
     }
 
+    fn mixture_update(
+        &mut self,
+        set: u32,
+        data: &LocalData,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+    ) -> Option<nahi::Arrival> {
+        let prm = &self.sets[set as usize];
+        let meas = Measurement {
+            j: &prm.J,
+            m: &prm.M,
+            y: data.y,
+            ru: data.ru,
+            p: data.p,
+            known: false,
+        };
+        nahi::mixture_update(&meas, x_pred, t_pred, x_filt, p_filt, &mut self.ws)
+    }
+
     fn mean_update(gain: &DynamicGain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]) {
         // The same operations, in the same order, as nahi::update and kalman_update (the
         // innovation is recomputed per column rather than stored, to stay allocation-free).
@@ -212,6 +245,9 @@ struct FixedSet<const N: usize, const Q: usize> {
     j_tr: SMatrix<f64, N, Q>,
     m: SMatrix<f64, Q, Q>,
     q: SMatrix<f64, N, N>,
+    /// The lower Cholesky factor of `M`, once per parameter set (`None` if `M` is not
+    /// positive definite, which a loaded model rules out).
+    m_factor: Option<SMatrix<f64, Q, Q>>,
 }
 
 /// `n = N`, `q = Q` known at compile time.
@@ -229,6 +265,13 @@ pub struct FixedGain<const N: usize, const Q: usize> {
 
 fn fixed<const R: usize, const C: usize>(m: &DMatrix<f64>) -> SMatrix<f64, R, C> {
     SMatrix::from_column_slice(m.as_slice())
+}
+
+/// `log N(v; 0, L Lᵀ)` from the lower factor `L` (only its lower triangle is read).
+fn log_gaussian<const Q: usize>(l: &SMatrix<f64, Q, Q>, v: &SVector<f64, Q>) -> Option<f64> {
+    let log_det: f64 = (0..Q).map(|k| 2.0 * l[(k, k)].ln()).sum();
+    let white = l.solve_lower_triangular(v)?;
+    Some(-0.5 * (Q as f64 * nahi::LN_2PI + log_det + white.norm_squared()))
 }
 
 fn symmetrize<const N: usize>(m: &mut SMatrix<f64, N, N>) {
@@ -307,6 +350,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
                     j_tr: fixed::<Q, N>(&p.J).transpose(),
                     m: fixed(&p.M),
                     q: fixed(&p.Q),
+                    m_factor: fixed::<Q, Q>(&p.M).cholesky().map(|c| c.unpack()),
                 })
                 .collect::<Vec<_>>()
                 .into(),
@@ -362,11 +406,9 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let xf = x + l * innov;
         x_filt.copy_from_slice(xf.as_slice());
         p_filt.copy_from_slice(pf.as_slice());
-        // log N(ỹ; 0, Σ) over the received rows (as in nahi::kalman_update).
-        let factor = chol.l_dirty();
-        let log_det: f64 = (0..Q).map(|k| 2.0 * factor[(k, k)].ln()).sum();
-        let whitened = factor.solve_lower_triangular(&innov)?;
-        Some(-0.5 * ((Q - dropped) as f64 * nahi::LN_2PI + log_det + whitened.norm_squared()))
+        // log N(ỹ; 0, Σ) over the received rows: a dropped row adds only −½ log 2π, taken
+        // back (as in nahi::kalman_update).
+        Some(log_gaussian(chol.l_dirty(), &innov)? + 0.5 * dropped as f64 * nahi::LN_2PI)
     }
 
     fn covariance_update(
@@ -389,6 +431,36 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         gain.l = l;
         p_filt.copy_from_slice(pf.as_slice());
         true
+    }
+
+    fn mixture_update(
+        &mut self,
+        set: u32,
+        data: &LocalData,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+    ) -> Option<nahi::Arrival> {
+        let prm = &self.sets[set as usize];
+        let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
+        let x = SVector::<f64, N>::from_column_slice(x_pred);
+        let e0 = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
+        let e = e0 - prm.j * x;
+        let jt = prm.j * t;
+        let s1 = (jt * prm.j_tr + prm.m).cholesky()?;
+        let ell0 = log_gaussian(prm.m_factor.as_ref()?, &e0)?;
+        let ell1 = log_gaussian(s1.l_dirty(), &e)?;
+        let arrival = nahi::Arrival::weigh(data.p, ell0, ell1);
+        let pi = arrival.probability;
+        // Kᵀ = S₁⁻¹ J T and g = K e, as in nahi::mixture_update.
+        let k_tr = s1.solve(&jt);
+        let g = k_tr.transpose() * e;
+        let mut pf = t - k_tr.transpose() * jt * pi + g * g.transpose() * (pi * (1.0 - pi));
+        symmetrize(&mut pf);
+        p_filt.copy_from_slice(pf.as_slice());
+        x_filt.copy_from_slice((x + g * pi).as_slice());
+        Some(arrival)
     }
 
     #[inline]

@@ -391,21 +391,29 @@ fn mixture_weights(
     let ell0 = log_density(&ws.reff, &mut ws.noise);
     ws.noise.copy_from(&ws.innov);
     let ell1 = log_density(&ws.sigma, &mut ws.noise);
-    let (probability, loglik) = if p <= 0.0 {
-        (0.0, ell0)
-    } else if p >= 1.0 {
-        (1.0, ell1)
-    } else {
-        let (a, b) = (p.ln() + ell1, (1.0 - p).ln() + ell0);
-        (
-            1.0 / (1.0 + (b - a).exp()),
-            a.max(b) + (-(a - b).abs()).exp().ln_1p(),
-        )
-    };
-    Some(Arrival {
-        probability,
-        loglik,
-    })
+    Some(Arrival::weigh(p, ell0, ell1))
+}
+
+impl Arrival {
+    /// `π` and `log(p e^ℓ₁ + (1−p) e^ℓ₀)` from the log densities `ℓ₀` (pure noise) and `ℓ₁`
+    /// (the state seen), in log space; `π = 0` when `p ≤ 0`, 1 when `p ≥ 1`.
+    pub(crate) fn weigh(p: f64, ell0: f64, ell1: f64) -> Self {
+        let (probability, loglik) = if p <= 0.0 {
+            (0.0, ell0)
+        } else if p >= 1.0 {
+            (1.0, ell1)
+        } else {
+            let (a, b) = (p.ln() + ell1, (1.0 - p).ln() + ell0);
+            (
+                1.0 / (1.0 + (b - a).exp()),
+                a.max(b) + (-(a - b).abs()).exp().ln_1p(),
+            )
+        };
+        Self {
+            probability,
+            loglik,
+        }
+    }
 }
 
 /// The mixture update of one subsystem as a pseudo-measurement, for the filters that update

@@ -27,7 +27,7 @@ use nalgebra::DMatrix;
 use crate::error::{Error, Result};
 use crate::filter::kernel::{DynamicKernel, FixedKernel, LocalData, LocalKernel};
 use crate::filter::{
-    ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update, nahi,
+    ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update,
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
@@ -141,8 +141,6 @@ struct Worker<K> {
     ru: Vec<f64>,
     cov: Vec<f64>,
     mean: Vec<f64>,
-    /// The mixture update's scratch.
-    mixture: nahi::Workspace,
 }
 
 impl<K: LocalKernel> Worker<K> {
@@ -155,7 +153,6 @@ impl<K: LocalKernel> Worker<K> {
             ru: vec![0.0; q],
             cov: vec![0.0; n * n],
             mean: vec![0.0; n],
-            mixture: nahi::Workspace::new(n, q),
         }
     }
 }
@@ -184,8 +181,10 @@ struct UpdateInputs<'a, G> {
     u: &'a [f64],
 }
 
-/// The local updates (Nahi's, or the mixture update with its `π` into `arrival`) and `z = D x̂ + H u` of subsystems `first..first + x_filt.len() / n`
-/// (0-based). Returns the first subsystem whose `Σ` is not positive definite.
+/// The local updates (Nahi's, or the mixture update with its `π` into `arrival`), each
+/// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of subsystems
+/// `first..first + x_filt.len() / n` (0-based). Returns the first subsystem whose `Σ` is not
+/// positive definite.
 #[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
@@ -220,17 +219,9 @@ fn update_range<K: LocalKernel>(
             known: inp.known,
         };
         if inp.mixture {
-            let meas = nahi::Measurement {
-                j: &prm.J,
-                m: &prm.M,
-                y: data.y,
-                ru: data.ru,
-                p: data.p,
-                known: false,
-            };
             let x_pred = &inp.x_pred[vi.clone()];
             let t_pred = &inp.t_pred[nn.clone()];
-            match nahi::mixture_update(&meas, x_pred, t_pred, xf, pf, &mut wk.mixture) {
+            match wk.kernel.mixture_update(set, &data, x_pred, t_pred, xf, pf) {
                 Some(a) => {
                     arrival[k] = a.probability;
                     log_densities[k] = a.loglik;
