@@ -156,16 +156,20 @@ fn check_covariance(block: &[f64], n: usize, what: &str) -> Result<(), String> {
         return Err(format!("{what}: non-finite entry {v} in {block:?}"));
     }
     let p = DMatrix::from_column_slice(n, n, block);
+    // Relative to the largest entry, but never below the smallest normal number: entries that
+    // have decayed into the subnormal range (Q = 0, a contracting A) keep only absolute
+    // precision, and a rounding there is not a sign of indefiniteness.
     let scale = p.amax();
+    let tol = (1e-9 * scale).max(f64::MIN_POSITIVE);
     for r in 0..n {
         for c in 0..r {
-            if (p[(r, c)] - p[(c, r)]).abs() > 1e-9 * scale {
+            if (p[(r, c)] - p[(c, r)]).abs() > tol {
                 return Err(format!("{what}: not symmetric: {p}"));
             }
         }
     }
     let min = SymmetricEigen::new(p.clone()).eigenvalues.min();
-    if min < -1e-9 * scale {
+    if min < -tol {
         return Err(format!(
             "{what}: eigenvalue {min:e} below −1e-9 · {scale:e}: {p}"
         ));

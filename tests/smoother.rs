@@ -11,7 +11,7 @@ use common::{dense_interconnect, model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
-    TwoStepOptions, two_step,
+    TwoStepOptions, Update, two_step,
 };
 use sisfilt::model::Model;
 use sisfilt::smoother::{
@@ -274,9 +274,9 @@ fn full_band(model: &Model, dropouts: Dropouts, second_moment: SecondMoment) -> 
     }
 }
 
-/// `--band N−1 --band-tol 0 --loading 0`: the joint smoother is the centralized smoother.
-#[test]
-fn full_band_joint_smoother_equals_centralized_smoother() {
+/// The chains of the full-band comparisons: every shipped config, a small chain with
+/// overrides and inputs, and chains of 2 and 1 subsystems.
+fn full_band_models() -> Vec<(String, Model)> {
     let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
         .iter()
         .map(|n| (n.to_string(), shipped_model(n)))
@@ -292,7 +292,13 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
         ),
     ));
     models.push(("N = 1".into(), one_subsystem()));
-    for (name, model) in &models {
+    models
+}
+
+/// `--band N−1 --band-tol 0 --loading 0`: the joint smoother is the centralized smoother.
+#[test]
+fn full_band_joint_smoother_equals_centralized_smoother() {
+    for (name, model) in &full_band_models() {
         let run = simulate_run(model, 9);
         let steps = 25.min(run.y.len());
         let (ys, us) = (&run.y[..steps], &run.u[..steps]);
@@ -325,6 +331,74 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
             );
         }
     }
+}
+
+/// On the mixture filter's moments (docs/theory.md §10) too, the joint smoother at full band
+/// is the centralized smoother (1e−9), and with one subsystem the distributed smoother is
+/// as well; at `p = 1` every measurement arrives and the mixture smoother is the linear one.
+#[test]
+fn mixture_smoothers_agree_at_full_band() {
+    for (name, model) in &full_band_models() {
+        let run = simulate_run(model, 9);
+        let steps = 25.min(run.y.len());
+        let (ys, us) = (&run.y[..steps], &run.u[..steps]);
+        let cent = smooth(
+            Box::new(
+                CentralizedSmoother::new(model, false, 1000)
+                    .unwrap()
+                    .with_mixture_update()
+                    .unwrap(),
+            ),
+            ys,
+            us,
+        );
+        assert!(cent.notes.is_empty(), "{name}: {:?}", cent.notes);
+        let opts = JointOptions {
+            update: Update::Mixture,
+            ..full_band(model, Dropouts::Unknown, SecondMoment::Band)
+        };
+        let joint = smooth(Box::new(JointSmoother::new(model, opts).unwrap()), ys, us);
+        let (gx, gp) = gap(&joint, &cent);
+        assert!(gx < 1e-9 && gp < 1e-9, "{name}: x {gx:e}, P {gp:e}");
+        if model.subsystems == 1 {
+            let mixture = TwoStepOptions {
+                update: Update::Mixture,
+                ..TwoStepOptions::default()
+            };
+            let distributed = smooth(
+                Box::new(DistributedSmoother::new(
+                    model,
+                    two_step(model, mixture).unwrap(),
+                )),
+                ys,
+                us,
+            );
+            let (gx, gp) = gap(&distributed, &cent);
+            assert!(
+                gx < 1e-9 && gp < 1e-9,
+                "{name}, distributed: x {gx:e}, P {gp:e}"
+            );
+        }
+    }
+    let model = one_subsystem().with_arrival_probability(1.0);
+    let run = simulate_run(&model, 4);
+    let linear = smooth(
+        Box::new(CentralizedSmoother::new(&model, false, 100).unwrap()),
+        &run.y,
+        &run.u,
+    );
+    let mixture = smooth(
+        Box::new(
+            CentralizedSmoother::new(&model, false, 100)
+                .unwrap()
+                .with_mixture_update()
+                .unwrap(),
+        ),
+        &run.y,
+        &run.u,
+    );
+    let (gx, gp) = gap(&mixture, &linear);
+    assert!(gx < 1e-10 && gp < 1e-10, "p = 1: x {gx:e}, P {gp:e}");
 }
 
 /// With one subsystem all three smoothers are the plain RTS smoother of the subsystem's

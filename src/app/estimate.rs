@@ -152,19 +152,11 @@ impl Plan {
         two_step.interconnect_from = args.interconnect_from.unwrap_or(two_step.interconnect_from);
         two_step.dropouts = args.dropouts;
         two_step.update = args.update;
-        if args.update == Update::Mixture {
-            if args.dropouts == Dropouts::Known {
-                return Err(Error::Usage(
-                    "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
-                )
-                .into());
-            }
-            if args.smooth {
-                return Err(Error::Usage(
-                    "--update mixture --smooth: smoothing with the mixture update is not built yet; smooth with --update linear, or filter with --update mixture".into(),
-                )
-                .into());
-            }
+        if args.update == Update::Mixture && args.dropouts == Dropouts::Known {
+            return Err(Error::Usage(
+                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
+            )
+            .into());
         }
         let joint = joint_options(args)?;
         let output = match (args.smooth, args.predicted, args.max_memory) {
@@ -316,7 +308,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         let columns = EstimatesColumns {
             n,
             cross: k,
-            arrival: false,
+            arrival: plan.update() == Update::Mixture,
         };
         let writer = EstimatesWriter::new(output, plan.format, columns, Some(&metadata))
             .map_err(|e| Error::io(&out_name, e))?;
@@ -582,11 +574,17 @@ fn make_smoother<'m>(
 ) -> Result<Box<dyn Smoother + 'm>> {
     Ok(match (plan.filter, plan.joint) {
         (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
-        (FilterKind::Centralized, _) => Box::new(CentralizedSmoother::new(
-            model,
-            plan.dropouts() == Dropouts::Known,
-            args.max_lifted,
-        )?),
+        (FilterKind::Centralized, _) => {
+            let smoother = CentralizedSmoother::new(
+                model,
+                plan.dropouts() == Dropouts::Known,
+                args.max_lifted,
+            )?;
+            match plan.update() {
+                Update::Linear => Box::new(smoother),
+                Update::Mixture => Box::new(smoother.with_mixture_update()?),
+            }
+        }
         _ => Box::new(DistributedSmoother::new(
             model,
             two_step(model, plan.two_step)?,
@@ -619,6 +617,8 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut truth_rows: Vec<Vec<f64>> = Vec::new();
+    // The forward pass's π of every step (the mixture update): the smoother keeps them.
+    let mut arrival: Vec<Vec<f64>> = Vec::new();
     let mut steps = 0;
     while let Some(t) = meas.read_step(&mut y)? {
         let need = memory_bytes(model, kind, t);
@@ -632,6 +632,9 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         }
         inputs.next(t, &mut u)?;
         smoother.step(&y, &u)?;
+        if let Some(pi) = smoother.arrival() {
+            arrival.push(pi.to_vec());
+        }
         if let Some(truth) = truth.as_mut() {
             let mut row = vec![0.0; big_n * (n + 1)];
             read_truth_step(truth, t, &mut row)?;
@@ -646,25 +649,30 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
     }
     let out_name = args.out.display().to_string();
     let mut accuracy = Accuracy::new(n);
+    let mut detection = Detection::default();
     for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
         check_estimates(idx + 1, n, x, p)?;
         let band = smoothed.bands.as_ref().map(|b| &b[idx]);
+        let pi = arrival.get(idx).map(Vec::as_slice);
         writer
-            .write_step(idx + 1, x, p, band, None)
+            .write_step(idx + 1, x, p, band, pi)
             .map_err(|e| Error::io(&out_name, e))?;
-        for i in 0..big_n {
-            if let Some(row) = truth_rows.get(idx) {
+        if let Some(row) = truth_rows.get(idx) {
+            for i in 0..big_n {
                 accuracy.add(
                     &row[i * (n + 1)..i * (n + 1) + n],
                     &x[i * n..(i + 1) * n],
                     &p[i * n * n..(i + 1) * n * n],
                 );
+                if let Some(pi) = pi {
+                    detection.add(pi[i], row[i * (n + 1) + n]);
+                }
             }
         }
     }
     let summary = EstimatesSummary {
         accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
-        detection: None,
+        detection: (truth.is_some() && !arrival.is_empty()).then(|| detection.report()),
         loglik: None,
     };
     report_summary(&summary);

@@ -15,7 +15,7 @@
 use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
 
 use crate::error::Result;
-use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment};
+use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment, Update};
 use crate::model::Model;
 use crate::smoother::{BackwardGain, GainView, JointSmoother, MeanPass, Smoothed, Smoother};
 
@@ -26,6 +26,7 @@ pub const MAX_CONDITION: f64 = 1e12;
 pub struct CentralizedSmoother<'m> {
     model: &'m Model,
     known: bool,
+    update: Update,
     filter: CentralizedFilter<'m>,
     x_filt: Vec<DVector<f64>>,
     x_pred: Vec<DVector<f64>>,
@@ -42,6 +43,7 @@ impl<'m> CentralizedSmoother<'m> {
         Ok(Self {
             model,
             known,
+            update: Update::Linear,
             filter: CentralizedFilter::new(model, known, max_lifted)?,
             x_filt: Vec::new(),
             x_pred: Vec::new(),
@@ -51,6 +53,14 @@ impl<'m> CentralizedSmoother<'m> {
             y: Vec::new(),
             u: Vec::new(),
         })
+    }
+
+    /// The same smoother on the moments of the mixture filter (docs/theory.md §10):
+    /// [`CentralizedFilter::with_mixture_update`] forward, the same backward pass.
+    pub fn with_mixture_update(mut self) -> Result<Self> {
+        self.filter = self.filter.with_mixture_update()?;
+        self.update = Update::Mixture;
+        Ok(self)
     }
 }
 
@@ -76,6 +86,10 @@ impl Smoother for CentralizedSmoother<'_> {
         self.y.push(y.to_vec());
         self.u.push(u.to_vec());
         Ok(())
+    }
+
+    fn arrival(&self) -> Option<&[f64]> {
+        self.filter.arrival()
     }
 
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
@@ -156,7 +170,10 @@ impl CentralizedSmoother<'_> {
         } else {
             Dropouts::Unknown
         };
-        let opts = JointOptions::full_band(model, SecondMoment::Lifted, dropouts);
+        let opts = JointOptions {
+            update: self.update,
+            ..JointOptions::full_band(model, SecondMoment::Lifted, dropouts)
+        };
         let mut joint: Box<dyn Smoother> =
             Box::new(JointSmoother::new(model, opts)?.loading_as_noise());
         for (y, u) in self.y.iter().zip(&self.u) {

@@ -119,6 +119,10 @@ impl Smoother for DistributedSmoother<'_> {
         Ok(())
     }
 
+    fn arrival(&self) -> Option<&[f64]> {
+        self.filter.arrival()
+    }
+
     fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);

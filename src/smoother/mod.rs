@@ -60,6 +60,10 @@ pub trait Smoother {
     fn finish(self: Box<Self>) -> Result<Smoothed> {
         self.backward(false)
     }
+    /// With the mixture update (docs/theory.md §10): `π(t, i)` of the last forward step.
+    fn arrival(&self) -> Option<&[f64]> {
+        None
+    }
 }
 
 /// The gain `L_t` of one backward step, which maps what the later data say about `x(t+1)` to
