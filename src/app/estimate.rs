@@ -461,8 +461,7 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut x_true = vec![0.0; big_n * (n + 1)];
-    let mut accuracy = Accuracy::new(n);
-    let mut detection = Detection::default();
+    let mut scores = Scores::new(n);
     let mut loglik = 0.0;
     // With --predicted, row t is scored against the truth at t + 1.
     let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
@@ -513,22 +512,11 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
                 (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
                 (true, false) => None,
             };
-            if let Some((xs, ps)) = scored {
-                for i in 0..big_n {
-                    accuracy.add(
-                        &x_true[i * (n + 1)..i * (n + 1) + n],
-                        &xs[i * n..(i + 1) * n],
-                        &ps[i * n * n..(i + 1) * n * n],
-                    );
-                }
-            }
+            // π(t, i) is scored against γ(t, i), whichever estimate row t holds.
+            scores.add(&x_true, scored, filter.arrival());
             if predicted {
                 prev_x.copy_from_slice(x_hat);
                 prev_p.copy_from_slice(p_hat);
-            }
-            // π(t, i) is scored against γ(t, i), whichever estimate row t holds.
-            for (i, &pi) in filter.arrival().unwrap_or_default().iter().enumerate() {
-                detection.add(pi, x_true[i * (n + 1) + n]);
             }
         }
         steps = t;
@@ -540,9 +528,8 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
         (steps * big_n) as f64 / elapsed.max(1e-9)
     ));
     let summary = EstimatesSummary {
-        accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
-        detection: (truth.is_some() && filter.arrival().is_some()).then(|| detection.report()),
         loglik: filter.log_likelihood().map(|_| loglik),
+        ..scores.summary(truth.is_some(), filter.arrival().is_some())?
     };
     if let Some(loglik) = summary.loglik {
         info(format!(
@@ -648,8 +635,7 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         warn(note);
     }
     let out_name = args.out.display().to_string();
-    let mut accuracy = Accuracy::new(n);
-    let mut detection = Detection::default();
+    let mut scores = Scores::new(n);
     for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
         check_estimates(idx + 1, n, x, p)?;
         let band = smoothed.bands.as_ref().map(|b| &b[idx]);
@@ -658,38 +644,69 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
             .write_step(idx + 1, x, p, band, pi)
             .map_err(|e| Error::io(&out_name, e))?;
         if let Some(row) = truth_rows.get(idx) {
-            for i in 0..big_n {
-                accuracy.add(
-                    &row[i * (n + 1)..i * (n + 1) + n],
-                    &x[i * n..(i + 1) * n],
-                    &p[i * n * n..(i + 1) * n * n],
-                );
-                if let Some(pi) = pi {
-                    detection.add(pi[i], row[i * (n + 1) + n]);
-                }
-            }
+            scores.add(row, Some((x, p)), pi);
         }
     }
-    let summary = EstimatesSummary {
-        accuracy: truth.is_some().then(|| scored(&accuracy)).transpose()?,
-        detection: (truth.is_some() && !arrival.is_empty()).then(|| detection.report()),
-        loglik: None,
-    };
+    let summary = scores.summary(truth.is_some(), !arrival.is_empty())?;
     report_summary(&summary);
     Ok(writer.commit(&summary)?)
 }
 
-/// The accuracy figures of a run scored against `--truth`; an error when not one term was
-/// scored, since figures over nothing would read as a perfect score.
-fn scored(accuracy: &Accuracy) -> Result<AccuracyReport> {
-    let report = accuracy.report();
-    if report.terms == 0 {
-        return Err(Error::Usage(
-            "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
-        )
-        .into());
+/// The figures of a run scored against `--truth`: the accuracy of the estimates
+/// (docs/theory.md §11) and how well `π` detects the lost measurements (§10).
+struct Scores {
+    n: usize,
+    accuracy: Accuracy,
+    detection: Detection,
+}
+
+impl Scores {
+    fn new(n: usize) -> Self {
+        Self {
+            n,
+            accuracy: Accuracy::new(n),
+            detection: Detection::default(),
+        }
     }
-    Ok(report)
+
+    /// Scores one step against its truth (`N (n + 1)` values: each subsystem's states, then
+    /// `γ`): the estimates `(x̂, P)` (`N·n` and `N·n²`), when given, and `π`, when given.
+    fn add(&mut self, truth: &[f64], estimates: Option<(&[f64], &[f64])>, arrival: Option<&[f64]>) {
+        let n = self.n;
+        for (i, row) in truth.chunks_exact(n + 1).enumerate() {
+            if let Some((x, p)) = estimates {
+                self.accuracy.add(
+                    &row[..n],
+                    &x[i * n..(i + 1) * n],
+                    &p[i * n * n..(i + 1) * n * n],
+                );
+            }
+            if let Some(pi) = arrival {
+                self.detection.add(pi[i], row[n]);
+            }
+        }
+    }
+
+    /// The summary of a run: the accuracy with `--truth`, the detection with `--truth` and
+    /// `π`. Not one scored term is an error, since figures over nothing would read as a
+    /// perfect score.
+    fn summary(&self, truth: bool, arrival: bool) -> Result<EstimatesSummary> {
+        if !truth {
+            return Ok(EstimatesSummary::default());
+        }
+        let accuracy = self.accuracy.report();
+        if accuracy.terms == 0 {
+            return Err(Error::Usage(
+                "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
+            )
+            .into());
+        }
+        Ok(EstimatesSummary {
+            accuracy: Some(accuracy),
+            detection: arrival.then(|| self.detection.report()),
+            loglik: None,
+        })
+    }
 }
 
 /// Reads the truth of step `t` into `out`; a truth file that ends before the measurements is

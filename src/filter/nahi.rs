@@ -249,9 +249,7 @@ pub fn kalman_update(
         }
         x_filt[c] = acc;
     }
-    // A dropped row is a unit variance with ỹ_k = 0: it adds only −½ log 2π, taken back.
-    let log_density = log_density(&ws.sigma, &mut ws.innov) + 0.5 * ws.dropped as f64 * LN_2PI;
-    ws.dropped = 0;
+    let log_density = received_log_density(&ws.sigma, &mut ws.innov, ws.dropped);
     let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
     if form == CovarianceForm::Standard {
         p_mat.copy_from(&t_mat);
@@ -284,10 +282,17 @@ pub struct Arrival {
 pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L`; `v` is overwritten by `L⁻¹ v`.
-pub(crate) fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
+fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
     let log_det: f64 = (0..l.nrows()).map(|k| 2.0 * l[(k, k)].ln()).sum();
     l.solve_lower_triangular_mut(v);
     -0.5 * (l.nrows() as f64 * LN_2PI + log_det + v.norm_squared())
+}
+
+/// [`log_density`] of a measurement model with `dropped` rows removed as
+/// [`Workspace::drop_row`] removes them: such a row is a unit variance with `v_k = 0`, which
+/// adds only `−½ log 2π`, taken back here.
+pub(crate) fn received_log_density(l: &DMatrix<f64>, v: &mut DVector<f64>, dropped: usize) -> f64 {
+    log_density(l, v) + 0.5 * dropped as f64 * LN_2PI
 }
 
 /// The mixture update of one subsystem (docs/theory.md §10): the measurement either carries

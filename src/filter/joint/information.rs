@@ -84,9 +84,7 @@ impl InfoWorkspace {
         chol.solve_mut(&mut self.w);
         self.reff = chol.unpack();
         self.white.copy_from(&self.innov);
-        // A removed row is a unit variance with ỹ_k = 0: only −½ log 2π, taken back.
-        let log_density =
-            nahi::log_density(&self.reff, &mut self.white) + 0.5 * dropped as f64 * nahi::LN_2PI;
+        let log_density = nahi::received_log_density(&self.reff, &mut self.white, dropped);
         for c in 0..n {
             for rr in 0..n {
                 let mut acc = 0.0;
