@@ -251,6 +251,15 @@ impl Detection {
         }
     }
 
+    /// Adds the sums of another run.
+    pub fn merge(&mut self, other: &Detection) {
+        self.abs_error_sum += other.abs_error_sum;
+        self.lost += other.lost;
+        self.detected += other.detected;
+        self.received += other.received;
+        self.false_alarms += other.false_alarms;
+    }
+
     pub fn report(&self) -> DetectionReport {
         let terms = (self.lost + self.received).max(1);
         DetectionReport {
@@ -266,17 +275,26 @@ impl Detection {
 impl DetectionReport {
     /// One line for standard error.
     pub fn summary(&self) -> String {
-        let percent = |k: u64, of: u64| 100.0 * k as f64 / of.max(1) as f64;
         format!(
             "mean |π − γ| {:.4}; {} of {} lost measurements detected ({:.1} %), {} false alarms among {} received ({:.2} %)",
             self.mean_abs_error,
             self.detected,
             self.lost,
-            percent(self.detected, self.lost),
+            self.detected_percent(),
             self.false_alarms,
             self.received,
-            percent(self.false_alarms, self.received)
+            self.false_alarm_percent()
         )
+    }
+
+    /// Detected lost measurements, per cent of the lost ones (0 when none was lost).
+    pub fn detected_percent(&self) -> f64 {
+        100.0 * self.detected as f64 / self.lost.max(1) as f64
+    }
+
+    /// False alarms, per cent of the received measurements.
+    pub fn false_alarm_percent(&self) -> f64 {
+        100.0 * self.false_alarms as f64 / self.received.max(1) as f64
     }
 }
 

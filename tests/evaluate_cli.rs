@@ -56,7 +56,10 @@ fn same_results_with_one_and_two_threads() {
             "joint",
             "centralized",
             "centralized-known",
-            "naive"
+            "naive",
+            "distributed-mixture",
+            "joint-mixture",
+            "centralized-mixture"
         ]
     );
     let central = &one["filters"][3];
@@ -73,7 +76,7 @@ fn same_results_with_one_and_two_threads() {
     }
 }
 
-/// `--smooth` adds the three smoother rows, each with its ratio to the centralized smoother
+/// `--smooth` adds the smoother rows (one per filter of `estimate`), each with its ratio to the centralized smoother
 /// and to the centralized filter; smoothing beats filtering.
 #[test]
 fn smooth_adds_the_smoother_rows() {
@@ -90,11 +93,13 @@ fn smooth_adds_the_smoother_rows() {
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
     let filters = v["filters"].as_array().unwrap();
-    assert_eq!(filters.len(), 9);
+    assert_eq!(filters.len(), 15);
     for name in [
         "distributed-smoother",
         "joint-smoother",
         "centralized-smoother",
+        "distributed-mixture-smoother",
+        "centralized-mixture-smoother",
     ] {
         let f = filters.iter().find(|f| f["name"] == name).unwrap();
         assert!(f["rmse_ratio"].as_f64().is_some(), "{name}");
@@ -281,7 +286,7 @@ fn the_json_reads_back_into_the_library_types_without_loss() {
         "{overflowed}"
     );
     let single: Evaluation = serde_json::from_str(&text).unwrap();
-    assert_eq!(single.filters.len(), 9);
+    assert_eq!(single.filters.len(), 15);
     assert!(
         single.filters[1]
             .accuracy
@@ -297,4 +302,70 @@ fn the_json_reads_back_into_the_library_types_without_loss() {
     assert_eq!(sweep.sweep_p, [0.5, 0.9]);
     assert_eq!(sweep.evaluations.len(), 2);
     assert_eq!(serde_json::to_value(&sweep).unwrap(), written);
+}
+
+/// `--true-p` changes the simulation only: the mixture rows' detection counts show the lost
+/// share of the truth's `p` (0.4 lost with `--true-p 0.6`, 0.15 with the platoon's
+/// `p = 0.85`; 12000 terms, so ±0.03 is over six standard deviations), over every scored
+/// `(t, i)`; the filters keep the config's `p`, so the Nahi filter's ANEES leaves its band.
+/// In a sweep the header says so and a block gives the share detected.
+#[test]
+fn true_p_simulates_another_arrival_probability_and_mixture_rows_score_detection() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |extra: &[&str]| -> (String, serde_json::Value) {
+        let out = dir.path().join("eval.json");
+        let assert = Command::cargo_bin("sisfilt")
+            .unwrap()
+            .arg("evaluate")
+            .arg(configs().join("platoon.toml"))
+            .args([
+                "--runs",
+                "3",
+                "--filters",
+                "centralized,centralized-mixture",
+            ])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .assert()
+            .success();
+        let table = String::from_utf8(assert.get_output().stdout.clone()).unwrap();
+        let json = serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
+        (table, json)
+    };
+    for (extra, lost_share) in [(&["--true-p", "0.6"][..], 0.4), (&[][..], 0.15)] {
+        let (table, v) = run(extra);
+        assert_eq!(
+            table.contains("simulated with p = 0.6"),
+            !extra.is_empty(),
+            "{table}"
+        );
+        let nahi = &v["filters"][0];
+        assert!(nahi["detection"].is_null(), "{nahi}");
+        let d = &v["filters"][1]["detection"];
+        let count = |key: &str| d[key].as_u64().unwrap();
+        assert_eq!(count("lost") + count("received"), 3 * 200 * 20);
+        let share = count("lost") as f64 / 12000.0;
+        assert!((share - lost_share).abs() < 0.03, "{share} {d}");
+        assert!(count("detected") <= count("lost"));
+        assert!(count("false_alarms") <= count("received"));
+        assert!(table.contains("detected") && table.contains("false alarms"));
+        let anees = nahi["accuracy"]["anees"].as_f64().unwrap();
+        assert_eq!(anees > 2.0, !extra.is_empty(), "Nahi's ANEES {anees}");
+    }
+    let (table, v) = run(&["--true-p", "0.6", "--sweep-p", "0.6,0.85"]);
+    assert!(
+        table.contains(
+            "p replaces the filters' arrival probability at every (t, i); simulated with p = 0.6"
+        ),
+        "{table}"
+    );
+    assert!(
+        table.contains("lost measurements detected (π < 0.5)"),
+        "{table}"
+    );
+    assert_eq!(v["options"]["true_p"].as_f64(), Some(0.6));
+    // The same realisations for both values: only the filters' p differs.
+    let lost = |k: usize| v["evaluations"][k]["filters"][1]["detection"]["lost"].clone();
+    assert_eq!(lost(0), lost(1));
 }

@@ -341,12 +341,14 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
             burn_in: 0,
             max_lifted: 1000,
             band: 2,
+            loading: None,
             filters: vec![
                 Compared::Distributed,
                 Compared::Joint,
                 Compared::Centralized,
             ],
             smooth: false,
+            true_p: None,
         };
         let ev = evaluate(&model, name, opts, || {}).unwrap();
         let get = |f: Compared| {

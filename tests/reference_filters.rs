@@ -6,7 +6,7 @@ mod common;
 use common::{model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::choice::Choice;
-use sisfilt::evaluate::{EvaluateOptions, evaluate};
+use sisfilt::evaluate::{Compared, EvaluateOptions, Evaluation, evaluate};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
     TwoStepFilter, TwoStepOptions, Update, two_step,
@@ -314,8 +314,15 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         burn_in: 0,
         max_lifted: 1000,
         band: 2,
-        filters: vec![],
+        loading: None,
+        filters: vec![
+            Compared::Distributed,
+            Compared::Centralized,
+            Compared::CentralizedKnown,
+            Compared::Naive,
+        ],
         smooth: false,
+        true_p: None,
     };
     let ev = evaluate(&model, "platoon", opts, || {}).unwrap();
     let ratio = |name: &str| {
@@ -338,6 +345,85 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         ratio("naive")
     );
     assert!(ratio("centralized-known") < 1.0);
+}
+
+/// A Monte Carlo of the centralized Nahi filter and the two mixture filters on a shipped
+/// config shortened to `steps`, simulated with `true_p` when given.
+fn mixture_against_nahi(name: &str, steps: usize, runs: usize, true_p: Option<f64>) -> Evaluation {
+    let mut model = shipped_model(name);
+    model.steps = steps;
+    let opts = EvaluateOptions {
+        runs,
+        seed: 1,
+        burn_in: 0,
+        max_lifted: 1000,
+        band: 2,
+        loading: None,
+        filters: vec![
+            Compared::Centralized,
+            Compared::JointMixture,
+            Compared::CentralizedMixture,
+        ],
+        smooth: false,
+        true_p,
+    };
+    evaluate(&model, name, opts, || {}).unwrap()
+}
+
+/// The mixture update (docs/theory.md §10) beats the optimal linear filter: on the platoon
+/// (`T = 100`, 100 runs) and the heat rod (`T = 150`, 20 runs), the RMSE of the centralized
+/// and the joint mixture filters is at most 0.82 of the centralized Nahi filter's on the same
+/// realisations, with an ANEES in [0.94, 1.06]. Measured: 0.79 on both chains (the filter
+/// told the dropouts: 0.77 and 0.79), ANEES 1.00. Over the long shipped runs the gain is
+/// smaller (0.83), the transient from the initial covariance weighing less.
+#[test]
+fn mixture_update_beats_the_optimal_linear_filter() {
+    for (name, steps, runs) in [("platoon.toml", 100, 100), ("heat_rod.toml", 150, 20)] {
+        let ev = mixture_against_nahi(name, steps, runs, None);
+        for f in ev
+            .filters
+            .iter()
+            .filter(|f| f.name != Compared::Centralized)
+        {
+            let ratio = f.rmse_ratio.unwrap();
+            let anees = f.accuracy.as_ref().unwrap().anees.unwrap();
+            assert!(
+                ratio <= 0.82,
+                "{name} {}: RMSE / centralized {ratio}",
+                f.name
+            );
+            assert!(
+                (0.94..=1.06).contains(&anees),
+                "{name} {}: ANEES {anees}",
+                f.name
+            );
+            // π tells most lost readings from received ones.
+            let d = f.detection.unwrap();
+            assert!(
+                d.detected_percent() > 50.0 && d.false_alarm_percent() < 5.0,
+                "{d:?}"
+            );
+        }
+    }
+}
+
+/// With a wrong `p` the data still decide: the platoon's config says `p = 0.85`, the
+/// realisations are simulated with `p = 0.6` (100 runs, `T = 100`), and the mixture filters'
+/// RMSE is at most 0.6 of the Nahi filter's, whose ANEES is far off. Measured: 0.579, Nahi's
+/// ANEES 3.9 against the mixture's 1.21.
+#[test]
+fn mixture_update_survives_a_wrong_arrival_probability() {
+    let ev = mixture_against_nahi("platoon.toml", 100, 100, Some(0.6));
+    let nahi = ev.filters.iter().find(|f| f.name == Compared::Centralized);
+    assert!(nahi.unwrap().accuracy.as_ref().unwrap().anees.unwrap() > 2.0);
+    for f in ev
+        .filters
+        .iter()
+        .filter(|f| f.name != Compared::Centralized)
+    {
+        let ratio = f.rmse_ratio.unwrap();
+        assert!(ratio <= 0.6, "{}: RMSE / centralized {ratio}", f.name);
+    }
 }
 
 /// Without coupling (`B = 0`) the lifted moments are the local ones, so `--second-moment

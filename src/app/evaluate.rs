@@ -36,9 +36,15 @@ pub struct EvaluateArgs {
     /// The joint filter's covariance band K.
     #[arg(long, value_name = "K", default_value_t = sisfilt::filter::joint::DEFAULT_BAND)]
     pub band: usize,
+    /// The joint filters' diagonal loading ε of the prior band, P_ii += ε tr(P_ii)/n I
+    /// [default: 1e-9 when every Q is zero, else 0].
+    #[arg(long, value_name = "EPS")]
+    pub loading: Option<f64>,
     /// Run only these filters (comma-separated; default: all): distributed,
-    /// distributed-paper, joint, centralized, centralized-known, naive, and the smoothers
-    /// distributed-smoother, joint-smoother, centralized-smoother.
+    /// distributed-paper, joint, centralized, centralized-known, naive, with the mixture
+    /// update distributed-mixture, joint-mixture, centralized-mixture, and the smoother of
+    /// each of the six filters of `estimate` (its name and -smoother, e.g.
+    /// joint-mixture-smoother).
     #[arg(
         long,
         value_delimiter = ',',
@@ -48,7 +54,8 @@ pub struct EvaluateArgs {
     )]
     pub filters: Vec<Compared>,
     /// Also run the smoothers of docs/theory.md §9 (distributed-smoother, joint-smoother,
-    /// centralized-smoother); their RMSE ratio is to the centralized smoother.
+    /// centralized-smoother and their mixture twins); their RMSE ratio is to the centralized
+    /// smoother.
     #[arg(long)]
     pub smooth: bool,
     /// Repeat the evaluation for each arrival probability in this comma-separated list (e.g.
@@ -56,6 +63,10 @@ pub struct EvaluateArgs {
     /// same seeds serve every value.
     #[arg(long, value_delimiter = ',')]
     pub sweep_p: Option<Vec<f64>>,
+    /// Simulate with this arrival probability at every (t, i) while the filters keep the
+    /// config's p (or each value of --sweep-p): what a wrong p costs each filter.
+    #[arg(long, value_name = "P")]
+    pub true_p: Option<f64>,
 }
 
 /// `sisfilt evaluate`: the table on standard output, the JSON in `--out`.
@@ -74,8 +85,10 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         burn_in: args.burn_in,
         max_lifted: args.max_lifted,
         band: args.band,
+        loading: args.loading,
         filters: args.filters.clone(),
         smooth: args.smooth,
+        true_p: args.true_p,
     };
     let config_name = args.config.display().to_string();
     let sweep = args.sweep_p.as_deref();

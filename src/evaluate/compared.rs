@@ -4,9 +4,11 @@
 use serde::{Deserialize, Serialize};
 
 use crate::choice::{Choice, Variant};
+use crate::filter::Update;
 
 /// A filter or smoother that `evaluate` compares (docs/theory.md §11). The declaration order
-/// is the tables' order; the smoothers (docs/theory.md §9) run with `--smooth`.
+/// is the tables' order; the smoothers (docs/theory.md §9) run with `--smooth`. Each of the
+/// three filters of `estimate` also runs with the mixture update (docs/theory.md §10).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Compared {
@@ -16,9 +18,15 @@ pub enum Compared {
     Centralized,
     CentralizedKnown,
     Naive,
+    DistributedMixture,
+    JointMixture,
+    CentralizedMixture,
     DistributedSmoother,
     JointSmoother,
     CentralizedSmoother,
+    DistributedMixtureSmoother,
+    JointMixtureSmoother,
+    CentralizedMixtureSmoother,
 }
 
 impl Choice for Compared {
@@ -55,6 +63,21 @@ impl Choice for Compared {
             help: "per-subsystem Kalman filter that treats every measurement as present",
         },
         Variant {
+            value: Self::DistributedMixture,
+            name: "distributed-mixture",
+            help: "two-step filter with the mixture update (--update mixture): detects lost measurements",
+        },
+        Variant {
+            value: Self::JointMixture,
+            name: "joint-mixture",
+            help: "joint band-k filter with the mixture update (--filter joint --update mixture)",
+        },
+        Variant {
+            value: Self::CentralizedMixture,
+            name: "centralized-mixture",
+            help: "centralized filter with the mixture update: not linear, beats the optimal linear one",
+        },
+        Variant {
             value: Self::DistributedSmoother,
             name: "distributed-smoother",
             help: "per-subsystem RTS smoother on the two-step filter (--smooth)",
@@ -68,6 +91,21 @@ impl Choice for Compared {
             value: Self::CentralizedSmoother,
             name: "centralized-smoother",
             help: "RTS smoother on the centralized filter: the optimal linear smoother",
+        },
+        Variant {
+            value: Self::DistributedMixtureSmoother,
+            name: "distributed-mixture-smoother",
+            help: "per-subsystem RTS smoother on the two-step mixture filter",
+        },
+        Variant {
+            value: Self::JointMixtureSmoother,
+            name: "joint-mixture-smoother",
+            help: "information-form smoother on the joint mixture filter",
+        },
+        Variant {
+            value: Self::CentralizedMixtureSmoother,
+            name: "centralized-mixture-smoother",
+            help: "RTS smoother on the centralized mixture filter",
         },
     ];
 }
@@ -89,7 +127,21 @@ impl Compared {
             Self::DistributedSmoother => Some(Self::Distributed),
             Self::JointSmoother => Some(Self::Joint),
             Self::CentralizedSmoother => Some(Self::Centralized),
+            Self::DistributedMixtureSmoother => Some(Self::DistributedMixture),
+            Self::JointMixtureSmoother => Some(Self::JointMixture),
+            Self::CentralizedMixtureSmoother => Some(Self::CentralizedMixture),
             _ => None,
+        }
+    }
+
+    /// How its measurements update the estimate: the mixture rows weigh each reading by
+    /// `π(t, i)`, which `evaluate` scores against the truth's `γ(t, i)`.
+    pub fn update(self) -> Update {
+        match self.smooths().unwrap_or(self) {
+            Self::DistributedMixture | Self::JointMixture | Self::CentralizedMixture => {
+                Update::Mixture
+            }
+            _ => Update::Linear,
         }
     }
 
@@ -137,12 +189,18 @@ mod tests {
                     assert_eq!(name, format!("{}-smoother", filter.name()));
                     assert!(!filter.is_smoother());
                     assert_eq!(f.reference(), Compared::CentralizedSmoother);
+                    assert_eq!(f.update(), filter.update(), "{name}");
                 }
                 None => {
                     assert!(!name.ends_with("-smoother"), "{name}");
                     assert_eq!(f.reference(), Compared::Centralized);
                 }
             }
+            assert_eq!(
+                f.update() == Update::Mixture,
+                name.contains("-mixture"),
+                "{name}"
+            );
             assert!(!f.description().is_empty(), "{name}");
             assert_eq!(Compared::all().nth(f.index()), Some(f), "{name}");
         }

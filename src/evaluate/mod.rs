@@ -17,12 +17,12 @@ mod table;
 use compared::COMPARED;
 pub use compared::Compared;
 
-use crate::accuracy::{Accuracy, AccuracyReport};
+use crate::accuracy::{Accuracy, AccuracyReport, Detection, DetectionReport};
 use crate::error::{Error, Result};
 use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
     CentralizedFilter, CentralizedSchedule, ChainFilter, Dropouts, JointFilter, JointOptions,
-    ScheduledCentralized, TwoStepOptions, check_estimates, two_step,
+    ScheduledCentralized, TwoStepOptions, Update, check_estimates, two_step,
 };
 use crate::inputs::InputStream;
 use crate::model::Model;
@@ -42,10 +42,17 @@ pub struct EvaluateOptions {
     pub max_lifted: usize,
     /// The joint filter's `--band K`.
     pub band: usize,
+    /// The joint filter's `--loading ε`; `None` for its default.
+    #[serde(default)]
+    pub loading: Option<f64>,
     /// The filters to run; empty means all filters, and the smoothers too with `smooth`.
     pub filters: Vec<Compared>,
     /// Also run the smoothers (docs/theory.md §9).
     pub smooth: bool,
+    /// Simulate with this arrival probability at every `(t, i)` while the filters keep the
+    /// config's `p`: what a wrong `p` costs each filter.
+    #[serde(default)]
+    pub true_p: Option<f64>,
 }
 
 impl EvaluateOptions {
@@ -70,6 +77,10 @@ pub struct FilterResult {
     pub rmse_ratio: Option<f64>,
     /// For a smoother: overall RMSE divided by the centralized (optimal) filter's.
     pub rmse_ratio_to_filter: Option<f64>,
+    /// With the mixture update: how well `π(t, i)` tells lost measurements from received
+    /// ones, over every run and scored `(t, i)`.
+    #[serde(default)]
+    pub detection: Option<DetectionReport>,
     /// Time spent in this filter, summed over runs (seconds).
     pub wall_time_s: f64,
     /// The average NEES at each time step `t = 1..T` over runs and subsystems (`null` where
@@ -99,6 +110,8 @@ struct Realisation {
     y: Vec<Vec<f64>>,
     y_known: Vec<Vec<f64>>,
     u: Vec<Vec<f64>>,
+    /// `γ(t, i)`: 1 where the measurement arrived, 0 where it was lost.
+    gamma: Vec<Vec<f64>>,
 }
 
 fn realise(model: &Model, seed: u64) -> Result<Realisation> {
@@ -108,6 +121,7 @@ fn realise(model: &Model, seed: u64) -> Result<Realisation> {
         y: vec![],
         y_known: vec![],
         u: vec![],
+        gamma: vec![],
     };
     let mut inputs = InputStream::open(model, None)?;
     simulate(model, model.steps, seed, &mut inputs, |s| {
@@ -121,6 +135,8 @@ fn realise(model: &Model, seed: u64) -> Result<Realisation> {
         }
         r.y_known.push(yk);
         r.u.push(s.u.to_vec());
+        r.gamma
+            .push(s.gamma.iter().map(|&g| f64::from(u8::from(g))).collect());
         Ok(())
     })?;
     Ok(r)
@@ -157,7 +173,7 @@ fn smoother_schedule_bytes(
     let per_step = match smoother {
         Compared::CentralizedSmoother => (big_n * n).powi(2) + big_n * n * n,
         _ => {
-            let filter = JointFilter::new(model, joint_options(opts))?;
+            let filter = JointFilter::new(model, joint_options(opts, Update::Linear))?;
             let k = filter.band();
             let kappa = (k + 2 * filter.a_eff_half_width()).min(model.subsystems - 1) as f64;
             big_n * ((kappa + 2.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
@@ -166,10 +182,20 @@ fn smoother_schedule_bytes(
     Ok(8.0 * per_step * model.steps as f64)
 }
 
-fn joint_options(opts: &EvaluateOptions) -> JointOptions {
+fn joint_options(opts: &EvaluateOptions, update: Update) -> JointOptions {
     JointOptions {
         band: opts.band,
+        loading: opts.loading,
+        update,
         ..JointOptions::default()
+    }
+}
+
+/// The two-step filter of the `distributed` rows.
+fn two_step_options(update: Update) -> TwoStepOptions {
+    TwoStepOptions {
+        update,
+        ..TwoStepOptions::default()
     }
 }
 
@@ -188,8 +214,18 @@ fn make_filter<'a>(
         },
         Compared::Joint => match &schedules.joint {
             Some(s) => Box::new(ScheduledJoint::new(s)?),
-            None => Box::new(JointFilter::new(model, joint_options(opts))?),
+            None => Box::new(JointFilter::new(
+                model,
+                joint_options(opts, Update::Linear),
+            )?),
         },
+        Compared::JointMixture => Box::new(JointFilter::new(
+            model,
+            joint_options(opts, Update::Mixture),
+        )?),
+        Compared::CentralizedMixture => {
+            Box::new(CentralizedFilter::new(model, false, max_lifted)?.with_mixture_update()?)
+        }
         Compared::DistributedPaper => two_step(model, TwoStepOptions::paper())?,
         Compared::CentralizedKnown => Box::new(CentralizedFilter::new(model, true, max_lifted)?),
         Compared::Naive => two_step(
@@ -199,7 +235,7 @@ fn make_filter<'a>(
                 ..TwoStepOptions::default()
             },
         )?,
-        _ => two_step(model, TwoStepOptions::default())?,
+        filter => two_step(model, two_step_options(filter.update()))?,
     })
 }
 
@@ -244,24 +280,48 @@ fn make_smoother<'a>(
     smoother: Compared,
     opts: &EvaluateOptions,
 ) -> Result<Box<dyn Smoother + 'a>> {
+    let update = smoother.update();
     Ok(match smoother.smooths() {
-        Some(Compared::Joint) => Box::new(JointSmoother::new(model, joint_options(opts))?),
+        Some(Compared::Joint | Compared::JointMixture) => {
+            Box::new(JointSmoother::new(model, joint_options(opts, update))?)
+        }
         Some(Compared::Centralized) => {
             Box::new(CentralizedSmoother::new(model, false, opts.max_lifted)?)
         }
+        Some(Compared::CentralizedMixture) => Box::new(
+            CentralizedSmoother::new(model, false, opts.max_lifted)?.with_mixture_update()?,
+        ),
         _ => Box::new(DistributedSmoother::new(
             model,
-            two_step(model, TwoStepOptions::default())?,
+            two_step(model, two_step_options(update))?,
         )),
     })
 }
 
-/// Per run and filter: the accuracy sums (overall and per step), or the error that stopped
-/// the filter, and the time.
-type RunResult = Vec<(Result<(Accuracy, StepNees), String>, f64)>;
+/// The sums of one filter over one run or several.
+struct Scores {
+    accuracy: Accuracy,
+    per_step: StepNees,
+    /// Filled by the mixture rows only.
+    detection: Detection,
+}
 
+impl Scores {
+    fn merge(&mut self, other: &Scores) {
+        self.accuracy.merge(&other.accuracy);
+        self.per_step.merge(&other.per_step);
+        self.detection.merge(&other.detection);
+    }
+}
+
+/// Per run and filter: the sums, or the error that stopped the filter, and the time.
+type RunResult = Vec<(Result<Scores, String>, f64)>;
+
+/// Run `r`: one realisation of `truth` (the model, or with `--true-p` the model simulated
+/// with another `p`) and every active filter of `model` on it.
 fn run_filters(
     model: &Model,
+    truth: &Model,
     opts: &EvaluateOptions,
     active: &[bool],
     schedules: &Schedules,
@@ -271,7 +331,7 @@ fn run_filters(
         run: r + 1,
         error: Box::new(error),
     };
-    let data = realise(model, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
+    let data = realise(truth, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
     let (n, big_n) = (model.dims.n, model.subsystems);
     let mut out = Vec::with_capacity(COMPARED);
     for name in Compared::all() {
@@ -281,28 +341,33 @@ fn run_filters(
             continue;
         }
         let start = Instant::now();
-        let result = (|| -> Result<(Accuracy, StepNees)> {
+        let result = (|| -> Result<Scores> {
             let mut acc = Accuracy::new(n);
             let mut per_step = StepNees::new(model.steps);
-            let mut score = |t: usize, x_hat: &[f64], p_hat: &[f64]| -> Result<()> {
-                check_estimates(t + 1, n, x_hat, p_hat)?;
-                if t < opts.burn_in {
-                    return Ok(());
-                }
-                let (sum, terms, infinite) = acc.nees_totals();
-                for i in 0..big_n {
-                    acc.add(
-                        &data.x[t][i * n..(i + 1) * n],
-                        &x_hat[i * n..(i + 1) * n],
-                        &p_hat[i * n * n..(i + 1) * n * n],
-                    );
-                }
-                let (sum_now, terms_now, infinite_now) = acc.nees_totals();
-                per_step.sum[t] = sum_now - sum;
-                per_step.terms[t] = terms_now - terms;
-                per_step.infinite[t] = infinite_now - infinite;
-                Ok(())
-            };
+            let mut detection = Detection::default();
+            let mut score =
+                |t: usize, x_hat: &[f64], p_hat: &[f64], arrival: Option<&[f64]>| -> Result<()> {
+                    check_estimates(t + 1, n, x_hat, p_hat)?;
+                    if t < opts.burn_in {
+                        return Ok(());
+                    }
+                    for (&pi, &gamma) in arrival.unwrap_or_default().iter().zip(&data.gamma[t]) {
+                        detection.add(pi, gamma);
+                    }
+                    let (sum, terms, infinite) = acc.nees_totals();
+                    for i in 0..big_n {
+                        acc.add(
+                            &data.x[t][i * n..(i + 1) * n],
+                            &x_hat[i * n..(i + 1) * n],
+                            &p_hat[i * n * n..(i + 1) * n * n],
+                        );
+                    }
+                    let (sum_now, terms_now, infinite_now) = acc.nees_totals();
+                    per_step.sum[t] = sum_now - sum;
+                    per_step.terms[t] = terms_now - terms;
+                    per_step.infinite[t] = infinite_now - infinite;
+                    Ok(())
+                };
             if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
                 // The filter's means, then the stored backward gains (docs/theory.md §9).
                 let mut f = match schedule.forward {
@@ -317,35 +382,41 @@ fn run_filters(
                 }
                 let xs = schedule.smooth_means(model, &x_filt, &x_pred);
                 for t in 0..xs.len() {
-                    score(t, &xs[t], &schedule.p[t])?;
+                    score(t, &xs[t], &schedule.p[t], None)?;
                 }
-                return Ok((acc, per_step));
-            }
-            if name.is_smoother() {
+            } else if name.is_smoother() {
                 let mut s = make_smoother(model, name, opts)?;
+                // The forward pass's π, which the smoother keeps (docs/theory.md §10).
+                let mut arrival = Vec::new();
                 for t in 0..data.y.len() {
                     s.step(&data.y[t], &data.u[t])?;
+                    if let Some(pi) = s.arrival() {
+                        arrival.push(pi.to_vec());
+                    }
                 }
                 let smoothed = s.finish()?;
                 for t in 0..data.y.len() {
-                    score(t, &smoothed.x[t], &smoothed.p[t])?;
+                    let pi = arrival.get(t).map(Vec::as_slice);
+                    score(t, &smoothed.x[t], &smoothed.p[t], pi)?;
                 }
-                return Ok((acc, per_step));
-            }
-            let mut f = make_filter(model, name, opts, schedules)?;
-            let ys = if name == Compared::CentralizedKnown {
-                &data.y_known
             } else {
-                &data.y
-            };
-            for t in 0..ys.len() {
-                f.step(&ys[t], &data.u[t])?;
-                {
+                let mut f = make_filter(model, name, opts, schedules)?;
+                let ys = if name == Compared::CentralizedKnown {
+                    &data.y_known
+                } else {
+                    &data.y
+                };
+                for t in 0..ys.len() {
+                    f.step(&ys[t], &data.u[t])?;
                     let (x_hat, p_hat) = f.filtered();
-                    score(t, x_hat, p_hat)?;
+                    score(t, x_hat, p_hat, f.arrival())?;
                 }
             }
-            Ok((acc, per_step))
+            Ok(Scores {
+                accuracy: acc,
+                per_step,
+                detection,
+            })
         })();
 
         out.push((
@@ -374,6 +445,14 @@ pub fn evaluate(
             opts.burn_in, model.name, model.steps
         )));
     }
+    if let Some(p) = opts.true_p.filter(|p| !(0.0..=1.0).contains(p)) {
+        return Err(Error::Usage(format!(
+            "--true-p: expected a probability in [0, 1], found {p}"
+        )));
+    }
+    joint_options(&opts, Update::Linear).check()?;
+    let truth = opts.true_p.map(|p| model.with_arrival_probability(p));
+    let truth = truth.as_ref().unwrap_or(model);
     let d = model.dims;
     // x, y, y with the losses marked, u, and a vector header for each, per step.
     let per_step = (model.subsystems * (d.n + 2 * d.q + d.m) + 12) * std::mem::size_of::<f64>();
@@ -432,7 +511,7 @@ pub fn evaluate(
             .transpose()?,
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| JointSchedule::new(model, joint_options(&opts), &u))
+            .then(|| JointSchedule::new(model, joint_options(&opts, Update::Linear), &u))
             .transpose()?,
         smoothers: Vec::new(),
     };
@@ -440,10 +519,12 @@ pub fn evaluate(
         let k = name.index();
         // A smoother whose backward pass fails is left to the runs, which report the error.
         // The two-step filter's covariances depend on the data (its local moment propagates
-        // the realised `B v̂`, docs/theory.md §4), so the distributed smoother runs in full every time.
+        // the realised `B v̂`, docs/theory.md §4), and so do the mixture update's (its `π`):
+        // those smoothers run in full every time.
         let schedule = if active[k]
             && name.is_smoother()
             && name != Compared::DistributedSmoother
+            && name.update() == Update::Linear
             && smoother_schedule_bytes(model, name, &opts)? <= MAX_SCHEDULE_BYTES as f64
         {
             SmootherSchedule::new(make_smoother(model, name, &opts)?, model, &u).ok()
@@ -455,24 +536,25 @@ pub fn evaluate(
     let results: Vec<RunResult> = (0..opts.runs)
         .into_par_iter()
         .map(|r| {
-            let res = run_filters(model, &opts, &active, &schedules, r);
+            let res = run_filters(model, truth, &opts, &active, &schedules, r);
             tick();
             res
         })
         .collect::<Result<_>>()?;
 
-    let n = model.dims.n;
-    let mut sums: Vec<Accuracy> = (0..COMPARED).map(|_| Accuracy::new(n)).collect();
-    let mut step_sums: Vec<StepNees> = (0..COMPARED).map(|_| StepNees::new(model.steps)).collect();
+    let mut sums: Vec<Scores> = (0..COMPARED)
+        .map(|_| Scores {
+            accuracy: Accuracy::new(model.dims.n),
+            per_step: StepNees::new(model.steps),
+            detection: Detection::default(),
+        })
+        .collect();
     let mut times = [0.0; COMPARED];
     for run in &results {
         for (k, (res, time)) in run.iter().enumerate() {
             times[k] += time;
             match res {
-                Ok((acc, per_step)) => {
-                    sums[k].merge(acc);
-                    step_sums[k].merge(per_step);
-                }
+                Ok(scores) => sums[k].merge(scores),
                 Err(e) if active[k] && skipped[k].is_none() => {
                     skipped[k] = Some(format!("failed: {e}"));
                 }
@@ -481,7 +563,7 @@ pub fn evaluate(
         }
     }
     let reports: Vec<Option<AccuracyReport>> = (0..COMPARED)
-        .map(|k| skipped[k].is_none().then(|| sums[k].report()))
+        .map(|k| skipped[k].is_none().then(|| sums[k].accuracy.report()))
         .collect();
     let rmse = |f: Compared| reports[f.index()].as_ref().map(|r| r.rmse_overall);
     let ratio = |f: Compared, to: Compared| Some(rmse(f)? / rmse(to)?);
@@ -499,9 +581,11 @@ pub fn evaluate(
                     .then(|| ratio(name, Compared::Centralized))
                     .flatten(),
                 accuracy: reports[k].clone(),
+                detection: (skipped[k].is_none() && name.update() == Update::Mixture)
+                    .then(|| sums[k].detection.report()),
                 wall_time_s: times[k],
                 nees_per_step: if skipped[k].is_none() {
-                    step_sums[k].averages()
+                    sums[k].per_step.averages()
                 } else {
                     Vec::new()
                 },
@@ -542,7 +626,8 @@ pub struct Sweep {
 }
 
 /// Runs [`evaluate`] once per arrival probability in `values`, each replacing the config's `p`
-/// everywhere ([`Model::with_arrival_probability`]); `tick` is called once per finished run.
+/// everywhere ([`Model::with_arrival_probability`]): in the simulation and in the filters, or
+/// with `opts.true_p` in the filters only; `tick` is called once per finished run.
 pub fn sweep_p(
     model: &Model,
     config: &str,

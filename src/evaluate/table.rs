@@ -1,6 +1,6 @@
 //! The tables `evaluate` prints on standard output.
 
-use super::{Evaluation, Sweep};
+use super::{Evaluation, FilterResult, Sweep};
 use crate::accuracy::AccuracyReport;
 use crate::choice::Choice;
 
@@ -8,8 +8,14 @@ impl Sweep {
     /// The tables printed on standard output: overall RMSE and ANEES, one row per `p`.
     pub fn table(&self) -> String {
         let o = &self.options;
+        let replaces = match o.true_p {
+            None => "p replaces the config's arrival probability at every (t, i)".to_string(),
+            Some(truth) => format!(
+                "p replaces the filters' arrival probability at every (t, i); simulated with p = {truth}"
+            ),
+        };
         let mut s = format!(
-            "{}: {} × T = {} × N = {} per value of p; scored t > {}; p replaces the config's arrival probability at every (t, i)\n",
+            "{}: {} × T = {} × N = {} per value of p; scored t > {}; {replaces}\n",
             self.config,
             o.runs_and_seeds(),
             self.steps,
@@ -22,9 +28,7 @@ impl Sweep {
             .map(|f| f.name.name())
             .collect();
         let widths: Vec<usize> = names.iter().map(|n| n.len().max(10) + 2).collect();
-        let block = |title: &str,
-                     pick: &dyn Fn(&AccuracyReport) -> Option<f64>,
-                     format: &dyn Fn(f64) -> String| {
+        let block = |title: &str, cell: &dyn Fn(&FilterResult) -> String| {
             let mut b = format!("\n{title}\n{:<8}", "p");
             for (n, w) in names.iter().zip(&widths) {
                 b += &format!(" {n:>w$}");
@@ -33,21 +37,31 @@ impl Sweep {
             for (p, e) in self.sweep_p.iter().zip(&self.evaluations) {
                 b += &format!("{p:<8}");
                 for (f, w) in e.filters.iter().zip(&widths) {
-                    let cell = match &f.accuracy {
-                        None => "-".to_string(),
-                        Some(a) => pick(a).map_or("inf".into(), format),
-                    };
-                    b += &format!(" {cell:>w$}");
+                    b += &format!(" {:>w$}", cell(f));
                 }
                 b += "\n";
             }
             b
         };
-        s += &block("RMSE (overall)", &|a| Some(a.rmse_overall), &|v| {
-            format!("{v:.4e}")
-        });
+        let accuracy = |pick: fn(&AccuracyReport) -> Option<f64>, format: fn(f64) -> String| {
+            move |f: &FilterResult| match &f.accuracy {
+                None => "-".to_string(),
+                Some(a) => pick(a).map_or("inf".into(), format),
+            }
+        };
+        s += &block(
+            "RMSE (overall)",
+            &accuracy(|a| Some(a.rmse_overall), |v| format!("{v:.4e}")),
+        );
         // As in the table of one evaluation.
-        s += &block("ANEES", &|a| a.anees, &|v| figure(v));
+        s += &block("ANEES", &accuracy(|a| a.anees, figure));
+        let detects = |e: &Evaluation| e.filters.iter().any(|f| f.detection.is_some());
+        if self.evaluations.iter().any(detects) {
+            s += &block("lost measurements detected (π < 0.5)", &|f| {
+                f.detection
+                    .map_or("-".into(), |d| format!("{:.1} %", d.detected_percent()))
+            });
+        }
         let mut notes: Vec<String> = Vec::new();
         for (k, name) in names.iter().enumerate() {
             let skipped: Vec<String> = self
@@ -81,27 +95,40 @@ impl Evaluation {
     /// The table printed on standard output.
     pub fn table(&self) -> String {
         let o = &self.options;
+        let truth = o.true_p.map_or(String::new(), |p| {
+            format!("; simulated with p = {p} at every (t, i), the filters assume the config's p")
+        });
         let mut s = format!(
-            "{}: {} × T = {} × N = {}; scored t > {}\n\n",
+            "{}: {} × T = {} × N = {}; scored t > {}{truth}\n\n",
             self.config,
             o.runs_and_seeds(),
             self.steps,
             self.subsystems,
             o.burn_in
         );
+        let detects = self.filters.iter().any(|f| f.detection.is_some());
+        let w = self
+            .filters
+            .iter()
+            .map(|f| f.name.name().len())
+            .fold(20, usize::max);
         let n = self
             .filters
             .iter()
             .find_map(|f| f.accuracy.as_ref())
             .map_or(0, |a| a.rmse.len());
-        s += &format!("{:<20} {:>10}", "filter", "RMSE");
+        s += &format!("{:<w$} {:>10}", "filter", "RMSE");
         for k in 1..=n {
             s += &format!(" {:>10}", format!("RMSE x{k}"));
         }
         s += &format!(
-            " {:>9} {:>10} {:>17} {:>8} {:>9}\n",
+            " {:>9} {:>10} {:>17} {:>8} {:>9}",
             "/ central", "ANEES", "95 % band", "left out", "time (s)"
         );
+        if detects {
+            s += &format!(" {:>8} {:>8} {:>12}", "|π − γ|", "detected", "false alarms");
+        }
+        s += "\n";
         let mut notes = Vec::new();
         for f in &self.filters {
             match (&f.accuracy, &f.skipped) {
@@ -112,21 +139,34 @@ impl Evaluation {
                             f.name
                         ));
                     }
-                    s += &format!("{:<20} {:>10.4e}", f.name, a.rmse_overall);
+                    s += &format!("{:<w$} {:>10.4e}", f.name, a.rmse_overall);
                     for r in &a.rmse {
                         s += &format!(" {r:>10.4e}");
                     }
                     let ratio = f.rmse_ratio.map_or("-".into(), figure);
                     let anees = a.anees.map_or("inf".into(), figure);
                     s += &format!(
-                        " {ratio:>9} {anees:>10} {:>17} {:>8} {:>9.2}\n",
+                        " {ratio:>9} {anees:>10} {:>17} {:>8} {:>9.2}",
                         format!("[{:.3}, {:.3}]", a.anees_band[0], a.anees_band[1]),
                         a.nees_left_out,
                         f.wall_time_s
                     );
+                    match (&f.detection, detects) {
+                        (Some(d), _) => {
+                            s += &format!(
+                                " {:>8.4} {:>8} {:>12}",
+                                d.mean_abs_error,
+                                format!("{:.1} %", d.detected_percent()),
+                                format!("{:.2} %", d.false_alarm_percent())
+                            );
+                        }
+                        (None, true) => s += &format!(" {:>8} {:>8} {:>12}", "-", "-", "-"),
+                        (None, false) => {}
+                    }
+                    s += "\n";
                 }
                 (None, Some(why)) => {
-                    s += &format!("{:<20} skipped (see note)\n", f.name);
+                    s += &format!("{:<w$} skipped (see note)\n", f.name);
                     notes.push(format!("{}: {why}", f.name));
                 }
                 (None, None) => {}
@@ -145,7 +185,7 @@ impl Evaluation {
             );
         }
         for f in &self.filters {
-            s += &format!("{:<20} {}\n", f.name, f.description);
+            s += &format!("{:<w$} {}\n", f.name, f.description);
         }
         for note in notes {
             s += &format!("note: {note}\n");

@@ -93,6 +93,29 @@ impl JointOptions {
             0.0
         })
     }
+
+    /// Refuses options no model can use: a negative or non-finite `band_tol` or `loading`,
+    /// the mixture update with known dropouts.
+    pub fn check(&self) -> Result<()> {
+        if self.update == Update::Mixture && self.dropouts == Dropouts::Known {
+            return Err(Error::Usage(
+                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
+            ));
+        }
+        let bad = |x: f64| !x.is_finite() || x < 0.0;
+        if bad(self.band_tol) {
+            return Err(Error::Usage(format!(
+                "--band-tol {}: expected a finite number ≥ 0",
+                self.band_tol
+            )));
+        }
+        if let Some(loading) = self.loading.filter(|&e| bad(e)) {
+            return Err(Error::Usage(format!(
+                "--loading {loading}: expected a finite number ≥ 0"
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// The leading flop count of one subsystem-step of the joint filter (docs/theory.md §8 "Cost"): predict
@@ -290,25 +313,10 @@ impl<'m> JointFilter<'m> {
     /// Starts from `X̂⁻(1) = [m0; …; m0]`, `P⁻(1) = blkdiag(P0)` (and the same moments).
     pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
+        opts.check()?;
         let known = opts.dropouts == Dropouts::Known;
         let mixture = opts.update == Update::Mixture;
-        if mixture && known {
-            return Err(Error::Usage(
-                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
-            ));
-        }
-        if !opts.band_tol.is_finite() || opts.band_tol < 0.0 {
-            return Err(Error::Usage(format!(
-                "--band-tol {}: expected a finite number ≥ 0",
-                opts.band_tol
-            )));
-        }
         let loading = opts.loading_for(model);
-        if !loading.is_finite() || loading < 0.0 {
-            return Err(Error::Usage(format!(
-                "--loading {loading}: expected a finite number ≥ 0"
-            )));
-        }
         let k = opts.band.min(big_n - 1);
         let solver = ChainSolver::new(model, 1)?;
         let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
