@@ -346,6 +346,71 @@ fn plots_read_the_joint_mixture_estimates() {
     }
 }
 
+/// With the mixture update's `arrival` column, each measurement is coloured by `π`: taken
+/// (`π ≥ 0.9`, the measurement colour), weighed (amber) or set aside (`π ≤ 0.1`, red), its
+/// shape still a dot where it arrived. The legend's counts and the dots of each colour are
+/// recomputed here from the estimates' `arrival` column and the truth's `gamma`.
+#[test]
+fn series_colours_each_measurement_by_its_arrival_probability() {
+    let dir = fixture();
+    let i = 5;
+    run_ok(
+        dir,
+        &[
+            "-q",
+            "estimate",
+            "--meas",
+            "platoon/measurements.csv",
+            "--update",
+            "mixture",
+            "--out",
+            "platoon/mixture.csv",
+        ],
+    );
+    let svg = plot(
+        &[
+            "series",
+            "--estimates",
+            "platoon/mixture.csv",
+            "--truth",
+            "platoon/truth.csv",
+            "--meas",
+            "platoon/measurements.csv",
+            "--subsystem",
+            "5",
+            "--state",
+            "2",
+        ],
+        "series-mixture.svg",
+    );
+    let t = texts(&svg);
+    let pi = column(&Csv::read(&dir.join("platoon/mixture.csv")), "arrival", i);
+    let gamma = column(&Csv::read(&dir.join("platoon/truth.csv")), "gamma", i);
+    let class = |s: usize| match pi[s] {
+        p if p <= 0.1 => 0,
+        p if p < 0.9 => 1,
+        _ => 2,
+    };
+    let steps = |c: usize| (0..pi.len()).filter(|&s| class(s) == c).count();
+    let dots = |c: usize| {
+        (0..pi.len())
+            .filter(|&s| class(s) == c && gamma[s] == 1.0)
+            .count()
+    };
+    assert_has(
+        &t,
+        &format!("taken by the filter (π ≥ 0.9): {} steps", steps(2)),
+    );
+    assert_has(&t, &format!("weighed (0.1 < π < 0.9): {}", steps(1)));
+    assert_has(&t, &format!("set aside as lost (π ≤ 0.1): {}", steps(0)));
+    assert_has(&t, "measurement y2 (● arrived, × lost: noise only)");
+    // The platoon sets aside some lost readings and takes most received ones.
+    assert!(steps(0) > 0 && steps(2) > pi.len() / 2, "{pi:?}");
+    for (c, fill) in [(0, "#D62728"), (1, "#F0AA00"), (2, "#2CA02C")] {
+        assert_eq!(count(&svg, "circle", "fill", fill), dots(c), "{fill}");
+    }
+}
+
 /// The heatmap's cell rectangles: every `rect` but the white background, the colour bar's 120
 /// slices and its frame.
 fn cell_count(svg: &str) -> usize {

@@ -1,7 +1,7 @@
 //! The tables `evaluate` prints on standard output.
 
 use super::{Evaluation, FilterResult, Sweep};
-use crate::accuracy::AccuracyReport;
+use crate::accuracy::{AccuracyReport, DetectionReport};
 use crate::choice::Choice;
 
 impl Sweep {
@@ -58,8 +58,7 @@ impl Sweep {
         let detects = |e: &Evaluation| e.filters.iter().any(|f| f.detection.is_some());
         if self.evaluations.iter().any(detects) {
             s += &block("lost measurements detected (π < 0.5)", &|f| {
-                f.detection
-                    .map_or("-".into(), |d| format!("{:.1} %", d.detected_percent()))
+                f.detection.map_or("-".into(), detected)
             });
         }
         let mut notes: Vec<String> = Vec::new();
@@ -126,7 +125,7 @@ impl Evaluation {
             "/ central", "ANEES", "95 % band", "left out", "time (s)"
         );
         if detects {
-            s += &format!(" {:>8} {:>8} {:>12}", "|π − γ|", "detected", "false alarms");
+            s += &format!(" {:>8} {:>9} {:>12}", "|π − γ|", "detected", "false alarms");
         }
         s += "\n";
         let mut notes = Vec::new();
@@ -154,13 +153,13 @@ impl Evaluation {
                     match (&f.detection, detects) {
                         (Some(d), _) => {
                             s += &format!(
-                                " {:>8.4} {:>8} {:>12}",
+                                " {:>8.4} {:>9} {:>12}",
                                 d.mean_abs_error,
-                                format!("{:.1} %", d.detected_percent()),
+                                detected(*d),
                                 format!("{:.2} %", d.false_alarm_percent())
                             );
                         }
-                        (None, true) => s += &format!(" {:>8} {:>8} {:>12}", "-", "-", "-"),
+                        (None, true) => s += &format!(" {:>8} {:>9} {:>12}", "-", "-", "-"),
                         (None, false) => {}
                     }
                     s += "\n";
@@ -201,5 +200,14 @@ fn figure(v: f64) -> String {
         format!("{v:.4}")
     } else {
         format!("{v:.3e}")
+    }
+}
+
+/// The share of lost measurements detected, or `none lost` (at `p = 1`).
+fn detected(d: DetectionReport) -> String {
+    if d.lost == 0 {
+        "none lost".into()
+    } else {
+        format!("{:.1} %", d.detected_percent())
     }
 }

@@ -242,6 +242,11 @@ impl EstimatesFile {
     }
 
     /// Position of `P_kk` (0-based `k`) in a row of [`EstimatesFile::read_step`].
+    /// Where `π(t, i)` sits in a row, when the file has the `arrival` column.
+    pub fn arrival_index(&self) -> Option<usize> {
+        self.columns.arrival.then(|| self.row_width() - 1)
+    }
+
     pub fn variance_index(&self, k: usize) -> usize {
         variance_index(self.n, k)
     }

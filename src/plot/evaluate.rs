@@ -19,9 +19,9 @@ use serde::Deserialize;
 use serde::de::IgnoredAny;
 
 use super::{
-    Area, CAPTION_SIZE, DESC_SIZE, GREY, GRID, LABEL_SIZE, PALETTE, Swatch, TITLE_SIZE, WIDTH,
-    commit_svg, decade_range, draw_centered, draw_legend, fmt_tick, font, header_height,
-    legend_lines, log_axis, open_output, padded,
+    Area, CAPTION_SIZE, DESC_SIZE, GREY, GRID, LABEL_SIZE, Swatch, TITLE_SIZE, WIDTH, commit_svg,
+    decade_range, draw_centered, draw_legend, fmt_tick, font, header_height, legend_lines,
+    log_axis, open_output, padded, palette,
 };
 use crate::accuracy::AccuracyReport;
 use crate::choice::Choice;
@@ -126,12 +126,19 @@ fn subtitle(doc: &EvaluationFile, input: &Path) -> String {
     if o.burn_in > 0 {
         s += &format!(", steps t > {} scored", o.burn_in);
     }
+    if let Some(p) = o.true_p {
+        let assumed = match doc {
+            EvaluationFile::Single(_) => "the config's",
+            EvaluationFile::Sweep(_) => "the axis's",
+        };
+        s += &format!("; simulated with p = {p}, the filters assuming {assumed} p");
+    }
     s
 }
 
 const TITLE_HEIGHT: u32 = 64;
-/// Left margin holding the filter names.
-const NAMES_WIDTH: u32 = 170;
+/// Left margin holding the filter names (the longest, `distributed-mixture-smoother`).
+const NAMES_WIDTH: u32 = 250;
 
 fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
@@ -195,7 +202,7 @@ fn render_single(doc: &EvaluationFile, single: &Evaluation, input: &Path) -> Res
 fn state_color(k: Option<usize>) -> RGBColor {
     match k {
         None => RGBColor(60, 60, 60),
-        Some(k) => PALETTE[k % PALETTE.len()],
+        Some(k) => palette(k),
     }
 }
 
@@ -406,7 +413,7 @@ fn anees_panel(area: &Area, filters: &[FilterResult], config: &str) -> Result<()
         }
     }
     let legend = [
-        (Swatch::Dot(PALETTE[0]), "ANEES of the filter".to_string()),
+        (Swatch::Dot(palette(0)), "ANEES of the filter".to_string()),
         (
             Swatch::Band(GREY),
             "95 % band of a consistent filter (narrow for many terms)".into(),
@@ -463,7 +470,7 @@ impl Dots<'_> {
         )))?;
         for (row, f) in self.filters.iter().enumerate() {
             let y = (rows - row) as f64 - 0.5;
-            let color = PALETTE[row % PALETTE.len()];
+            let color = palette(row);
             text_at(&mut ch, (lo, y), -10, HPos::Right, f.name.name(), BLACK)?;
             let Some(a) = &f.accuracy else {
                 text_at(
@@ -520,7 +527,7 @@ fn nees_per_step_panel(area: &Area, filters: &[FilterResult]) -> Result<()> {
         .enumerate()
         .filter(|(_, f)| nees_per_step(f).is_some())
         .map(|(row, f)| {
-            let color = PALETTE[row % PALETTE.len()];
+            let color = palette(row);
             (Swatch::Line(color), f.name.name().to_string())
         })
         .collect();
@@ -549,7 +556,7 @@ fn nees_per_step_panel(area: &Area, filters: &[FilterResult]) -> Result<()> {
     )))?;
     for (row, f) in filters.iter().enumerate() {
         let Some(v) = nees_per_step(f) else { continue };
-        let color = PALETTE[row % PALETTE.len()];
+        let color = palette(row);
         // A gap in the curve where the NEES is undefined (null) or not positive.
         let mut segment: Vec<(f64, f64)> = Vec::new();
         let mut segments = Vec::new();
@@ -635,7 +642,7 @@ fn render_sweep(doc: &EvaluationFile, sweep: &Sweep, input: &Path) -> Result<Str
                 } else {
                     n.to_string()
                 };
-                (Swatch::Line(PALETTE[k % PALETTE.len()]), label)
+                (Swatch::Line(palette(k)), label)
             })
             .collect();
 
@@ -726,7 +733,7 @@ where
         )))?;
     }
     for (k, pts) in curves.iter().enumerate() {
-        let color = PALETTE[k % PALETTE.len()];
+        let color = palette(k);
         ch.draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))?;
         ch.draw_series(pts.iter().map(|&pt| Circle::new(pt, 4, color.filled())))?;
     }

@@ -59,6 +59,17 @@ pub(crate) const PALETTE: [RGBColor; 10] = [
     RGBColor(23, 190, 207),
 ];
 
+/// The colour of curve `k`: the palette, then its colours darkened by half for the next ten
+/// (`evaluate --smooth` compares fifteen filters), and so on.
+pub(crate) fn palette(k: usize) -> RGBColor {
+    let RGBColor(r, g, b) = PALETTE[k % PALETTE.len()];
+    if (k / PALETTE.len()) % 2 == 0 {
+        RGBColor(r, g, b)
+    } else {
+        RGBColor(r / 2, g / 2, b / 2)
+    }
+}
+
 /// Writes a rendered SVG atomically to `out` (opened by the caller before the work, so that a
 /// bad path fails fast).
 pub(crate) fn commit_svg(mut out: Output, svg: &str) -> Result<()> {

@@ -6,8 +6,12 @@
 //! ticks along the time axis. The measurements `y = γ J x + R u + d` (docs/theory.md §1, (P5)) are drawn
 //! over the state when some row of `J` picks `x_k` alone and `R` adds nothing to it (then
 //! `y_r = x_k + d_r` when the measurement arrived, pure noise when it was lost); otherwise they
-//! get a panel of their own. The middle panel shows the error `x̂_k − x_k` against `±2σ_k`:
-//! for a consistent filter about 95 % of the error lies inside the band.
+//! get a panel of their own. When the estimates carry the mixture update's `π(t, i)` (the
+//! `arrival` column, docs/theory.md §10), each measurement is coloured by it: taken
+//! (`π ≥ 0.9`), set aside as lost (`π ≤ 0.1`) or in between, so one sees which readings the
+//! filter discounted; its shape still tells whether it arrived. The middle panel shows the
+//! error `x̂_k − x_k` against `±2σ_k`: for a consistent filter about 95 % of the error lies
+//! inside the band.
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -20,9 +24,9 @@ use super::data::{
     EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, one_based, same_chain,
 };
 use super::{
-    Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, PALETTE,
-    SMOOTHED, Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick,
-    font, header_height, legend_lines, open_output, padded,
+    Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, SMOOTHED,
+    Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick, font,
+    header_height, legend_lines, open_output, padded, palette,
 };
 use crate::error::Error;
 use crate::io::{Role, RunRecord, folder_of};
@@ -56,6 +60,9 @@ pub struct SeriesData {
     pub truth: Vec<f64>,
     /// Whether the measurement of `(t, i)` arrived.
     pub gamma: Vec<bool>,
+    /// The estimates' `π(t, i)`, the probability the filter gave to the measurement having
+    /// arrived, when they carry it.
+    pub arrival: Option<Vec<f64>>,
     pub estimate: Track,
     pub smoothed: Option<Track>,
     pub meas: Option<Measured>,
@@ -177,6 +184,7 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         state: args.state,
         truth: vec![],
         gamma: vec![],
+        arrival: est.arrival_index().map(|_| Vec::new()),
         estimate: Track {
             name: file_name(&args.estimates),
             x: vec![],
@@ -207,6 +215,9 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         data.gamma.push(x_true[i * (n + 1) + n] != 0.0);
         data.estimate.x.push(x_est[i * width + k]);
         data.estimate.var.push(x_est[i * width + var_at]);
+        if let (Some(pi), Some(at)) = (data.arrival.as_mut(), est.arrival_index()) {
+            pi.push(x_est[i * width + at]);
+        }
         if let (Some(s), Some(track)) = (smooth.as_mut(), data.smoothed.as_mut()) {
             if s.read_step(&mut x_smooth)?.is_none() {
                 return Err(ends_early(s.name(), &truth_name, t - 1).into());
@@ -434,6 +445,8 @@ fn chart<'a, 'b>(
     y_desc: &str,
 ) -> Result<Chart<'a, 'b>> {
     let strip_top = axis.strip.1;
+    // A tick the axis places at zero by adding up steps reads as 0, not as -2.776e-17.
+    let rounding = 1e-9 * (axis.range.end - axis.range.start);
     let lines = legend_lines(WIDTH, LEGEND_X, legend);
     let mut ch = ChartBuilder::on(area)
         .margin_top(header_height(lines))
@@ -453,6 +466,8 @@ fn chart<'a, 'b>(
         .y_label_formatter(&|v| {
             if *v < strip_top {
                 String::new()
+            } else if v.abs() < rounding {
+                "0".into()
             } else {
                 fmt_tick(*v)
             }
@@ -535,8 +550,11 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
         legend.push((Swatch::LineBand(*c), format!("{} ± 2σ", tr.name)));
     }
     if let Some((_, r)) = direct {
-        legend.push((Swatch::Dot(MEASURED), format!("measurement y{}", r + 1)));
-        legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+        legend.extend(measurement_legend(
+            d,
+            MEASURED,
+            &format!("measurement y{}", r + 1),
+        ));
     }
     legend.push(lost_entry(d));
 
@@ -556,14 +574,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
         ch.draw_series(std::iter::once(band(&tr.x, &tr.var, *c)))?;
     }
     if let Some((m, r)) = direct {
-        let points = |arrived: bool| {
-            (0..steps)
-                .filter(move |&t| d.gamma[t] == arrived)
-                .map(move |t| ((t + 1) as f64, m.y[t * m.q + r]))
-                .filter(|(_, v)| v.is_finite())
-        };
-        ch.draw_series(points(true).map(|p| Circle::new(p, 2, MEASURED.filled())))?;
-        ch.draw_series(points(false).map(|p| Cross::new(p, 3, GREY.stroke_width(1))))?;
+        draw_measurements(&mut ch, d, m, r, MEASURED)?;
     }
     ch.draw_series(line(d.truth.iter().copied(), TRUTH))?;
     for (tr, c) in &tracks {
@@ -628,11 +639,16 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
 fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
     let steps = d.truth.len();
     let range = extent(m.y.iter());
-    let color = |r: usize| PALETTE[(r + 2) % PALETTE.len()];
-    let mut legend: Vec<(Swatch, String)> = (0..m.q)
-        .map(|r| (Swatch::Dot(color(r)), format!("y{}", r + 1)))
-        .collect();
-    legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+    let color = |r: usize| palette(r + 2);
+    let mut legend: Vec<(Swatch, String)> = if d.arrival.is_some() {
+        measurement_legend(d, MEASURED, &format!("y1..y{}", m.q))
+    } else {
+        let mut legend: Vec<_> = (0..m.q)
+            .map(|r| (Swatch::Dot(color(r)), format!("y{}", r + 1)))
+            .collect();
+        legend.extend(measurement_legend(d, MEASURED, "").into_iter().skip(1));
+        legend
+    };
     legend.push(lost_entry(d));
     legend.push((
         Swatch::None,
@@ -651,22 +667,82 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
         "y",
     )?;
     for r in 0..m.q {
-        let point = move |t: usize| ((t + 1) as f64, m.y[t * m.q + r]);
-        ch.draw_series(
-            (0..steps)
-                .filter(|&t| d.gamma[t])
-                .map(point)
-                .filter(|(_, v)| v.is_finite())
-                .map(|p| Circle::new(p, 2, color(r).filled())),
-        )?;
-        ch.draw_series(
-            (0..steps)
-                .filter(|&t| !d.gamma[t])
-                .map(point)
-                .filter(|(_, v)| v.is_finite())
-                .map(|p| Cross::new(p, 3, GREY.stroke_width(1))),
-        )?;
+        draw_measurements(&mut ch, d, m, r, color(r))?;
     }
     ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    Ok(())
+}
+
+/// A measurement the mixture update set aside as lost (`π ≤ 0.1`), and one it weighed
+/// (`0.1 < π < 0.9`); one it took (`π ≥ 0.9`) keeps the colour of the measurements.
+const SET_ASIDE: RGBColor = LOST;
+const WEIGHED: RGBColor = RGBColor(240, 170, 0);
+
+/// The colour of a measurement: by `π` when the estimates carry it, else `arrived` for one
+/// that arrived and grey for one that was lost.
+fn measurement_color(d: &SeriesData, t: usize, arrived: RGBColor) -> RGBColor {
+    match d.arrival.as_ref().map(|pi| pi[t]) {
+        Some(pi) if pi <= 0.1 => SET_ASIDE,
+        Some(pi) if pi < 0.9 => WEIGHED,
+        Some(_) => arrived,
+        None if d.gamma[t] => arrived,
+        None => GREY,
+    }
+}
+
+/// The legend of the measurement marks: `name` for those that arrived (dots), the lost ones
+/// (crosses), and with `π` its three colours, each with its count.
+fn measurement_legend(d: &SeriesData, arrived: RGBColor, name: &str) -> Vec<(Swatch, String)> {
+    let Some(pi) = &d.arrival else {
+        return vec![
+            (Swatch::Dot(arrived), name.to_string()),
+            (Swatch::Cross(GREY), "y when lost (noise only)".into()),
+        ];
+    };
+    let count = |class: RGBColor| {
+        (0..pi.len())
+            .filter(|&t| measurement_color(d, t, arrived) == class)
+            .count()
+    };
+    vec![
+        (
+            Swatch::Dot(GREY),
+            format!("{name} (● arrived, × lost: noise only)"),
+        ),
+        (
+            Swatch::Block(arrived),
+            format!("taken by the filter (π ≥ 0.9): {} steps", count(arrived)),
+        ),
+        (
+            Swatch::Block(WEIGHED),
+            format!("weighed (0.1 < π < 0.9): {}", count(WEIGHED)),
+        ),
+        (
+            Swatch::Block(SET_ASIDE),
+            format!("set aside as lost (π ≤ 0.1): {}", count(SET_ASIDE)),
+        ),
+    ]
+}
+
+/// Row `r` of the measurements: a dot where it arrived, a cross where it was lost, each in
+/// [`measurement_color`].
+fn draw_measurements(
+    ch: &mut Chart<'_, '_>,
+    d: &SeriesData,
+    m: &Measured,
+    r: usize,
+    arrived: RGBColor,
+) -> Result<()> {
+    let marks = (0..d.truth.len())
+        .map(|t| (t, m.y[t * m.q + r]))
+        .filter(|(_, v)| v.is_finite());
+    for (t, v) in marks {
+        let (p, color) = (((t + 1) as f64, v), measurement_color(d, t, arrived));
+        if d.gamma[t] {
+            ch.draw_series(std::iter::once(Circle::new(p, 2, color.filled())))?;
+        } else {
+            ch.draw_series(std::iter::once(Cross::new(p, 3, color.stroke_width(1))))?;
+        }
+    }
     Ok(())
 }
