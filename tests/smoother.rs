@@ -335,7 +335,8 @@ fn full_band_joint_smoother_equals_centralized_smoother() {
 
 /// On the mixture filter's moments (docs/theory.md §10) too, the joint smoother at full band
 /// is the centralized smoother (1e−9), and with one subsystem the distributed smoother is
-/// as well; at `p = 1` every measurement arrives and the mixture smoother is the linear one.
+/// as well; at `p = 1` every measurement arrives and, for one subsystem, the three mixture
+/// smoothers are the textbook Kalman filter and RTS pass written in [`plain_rts`].
 #[test]
 fn mixture_smoothers_agree_at_full_band() {
     for (name, model) in &full_band_models() {
@@ -382,23 +383,45 @@ fn mixture_smoothers_agree_at_full_band() {
     }
     let model = one_subsystem().with_arrival_probability(1.0);
     let run = simulate_run(&model, 4);
-    let linear = smooth(
-        Box::new(CentralizedSmoother::new(&model, false, 100).unwrap()),
-        &run.y,
-        &run.u,
-    );
-    let mixture = smooth(
-        Box::new(
-            CentralizedSmoother::new(&model, false, 100)
-                .unwrap()
-                .with_mixture_update()
-                .unwrap(),
+    let textbook = plain_rts(&model, &run.y, &run.u);
+    let mixture = TwoStepOptions {
+        update: Update::Mixture,
+        ..TwoStepOptions::default()
+    };
+    let joint = JointOptions {
+        update: Update::Mixture,
+        ..JointOptions::default()
+    };
+    let smoothers: Vec<(&str, Box<dyn Smoother>)> = vec![
+        (
+            "distributed",
+            Box::new(DistributedSmoother::new(
+                &model,
+                two_step(&model, mixture).unwrap(),
+            )),
         ),
-        &run.y,
-        &run.u,
-    );
-    let (gx, gp) = gap(&mixture, &linear);
-    assert!(gx < 1e-10 && gp < 1e-10, "p = 1: x {gx:e}, P {gp:e}");
+        (
+            "centralized",
+            Box::new(
+                CentralizedSmoother::new(&model, false, 100)
+                    .unwrap()
+                    .with_mixture_update()
+                    .unwrap(),
+            ),
+        ),
+        (
+            "joint",
+            Box::new(JointSmoother::new(&model, joint).unwrap()),
+        ),
+    ];
+    for (name, s) in smoothers {
+        let out = smooth(s, &run.y, &run.u);
+        let (gx, gp) = gap(&out, &textbook);
+        assert!(
+            gx < 1e-10 && gp < 1e-10,
+            "p = 1, {name}: x {gx:e}, P {gp:e}"
+        );
+    }
 }
 
 /// With one subsystem all three smoothers are the plain RTS smoother of the subsystem's
@@ -407,51 +430,7 @@ fn mixture_smoothers_agree_at_full_band() {
 fn one_subsystem_smoothers_equal_plain_rts() {
     let model = one_subsystem();
     let run = simulate_run(&model, 3);
-    let (n, steps) = (2, run.y.len());
-    // Forward: the Nahi filter with the exact moment S = P + m mᵀ (v = 0 for N = 1).
-    let prm = |t: usize| model.params(t, 1);
-    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
-    let mut t_cov = model.initial_cov.clone();
-    let (mut mm, mut pm) = (x.clone(), t_cov.clone());
-    let (mut xf, mut pf, mut xp, mut tp) = (vec![], vec![], vec![], vec![]);
-    for t in 1..=steps {
-        let (p, a) = (model.p(t, 1), &prm(t).A);
-        let j = &prm(t).J;
-        let u = DVector::from_column_slice(&run.u[t - 1]);
-        let s = &pm + &mm * mm.transpose();
-        let h = j * p;
-        let reff = &prm(t).M + j * &s * j.transpose() * (p * (1.0 - p));
-        let sig = &h * &t_cov * h.transpose() + &reff;
-        let gain = &t_cov * h.transpose() * sig.clone().try_inverse().unwrap();
-        let innov = DVector::from_column_slice(&run.y[t - 1]) - &prm(t).R * &u - &h * &x;
-        let x_f = &x + &gain * innov;
-        let p_f = &t_cov - &gain * &h * &t_cov;
-        x = a * &x_f + &prm(t).C * &u;
-        t_cov = a * &p_f * a.transpose() + &prm(t).Q;
-        mm = a * &mm + &prm(t).C * &u;
-        pm = a * &pm * a.transpose() + &prm(t).Q;
-        xf.push(x_f);
-        pf.push(p_f);
-        xp.push(x.clone());
-        tp.push(t_cov.clone());
-    }
-    let mut xs = xf.clone();
-    let mut ps = pf.clone();
-    for k in (0..steps - 1).rev() {
-        let a = &prm(k + 1).A;
-        let c = &pf[k] * a.transpose() * tp[k].clone().try_inverse().unwrap();
-        xs[k] = &xf[k] + &c * (&xs[k + 1] - &xp[k]);
-        ps[k] = &pf[k] + &c * (&ps[k + 1] - &tp[k]) * c.transpose();
-    }
-    let plain = Smoothed {
-        x: xs.iter().map(|v| v.as_slice().to_vec()).collect(),
-        p: ps.iter().map(|m| m.as_slice().to_vec()).collect(),
-        bands: None,
-        notes: vec![],
-        gains: None,
-        forward: None,
-    };
-    let _ = n;
+    let plain = plain_rts(&model, &run.y, &run.u);
     let opts = TwoStepOptions::default();
     let smoothers: Vec<(&str, Box<dyn Smoother>)> = vec![
         (
@@ -474,6 +453,55 @@ fn one_subsystem_smoothers_equal_plain_rts() {
         let out = smooth(s, &run.y, &run.u);
         let (gx, gp) = gap(&out, &plain);
         assert!(gx < 1e-10 && gp < 1e-10, "{name}: x {gx:e}, P {gp:e}");
+    }
+}
+
+/// The plain RTS smoother of a one-subsystem chain's Nahi filter, with the exact moment
+/// `S = P + m mᵀ` (`v = 0` for `N = 1`); at `p = 1` the textbook Kalman filter and RTS pass.
+fn plain_rts(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>]) -> Smoothed {
+    let steps = y.len();
+    // Forward: the Nahi filter with the exact moment S = P + m mᵀ (v = 0 for N = 1).
+    let prm = |t: usize| model.params(t, 1);
+    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
+    let mut t_cov = model.initial_cov.clone();
+    let (mut mm, mut pm) = (x.clone(), t_cov.clone());
+    let (mut xf, mut pf, mut xp, mut tp) = (vec![], vec![], vec![], vec![]);
+    for t in 1..=steps {
+        let (p, a) = (model.p(t, 1), &prm(t).A);
+        let j = &prm(t).J;
+        let u = DVector::from_column_slice(&u[t - 1]);
+        let s = &pm + &mm * mm.transpose();
+        let h = j * p;
+        let reff = &prm(t).M + j * &s * j.transpose() * (p * (1.0 - p));
+        let sig = &h * &t_cov * h.transpose() + &reff;
+        let gain = &t_cov * h.transpose() * sig.clone().try_inverse().unwrap();
+        let innov = DVector::from_column_slice(&y[t - 1]) - &prm(t).R * &u - &h * &x;
+        let x_f = &x + &gain * innov;
+        let p_f = &t_cov - &gain * &h * &t_cov;
+        x = a * &x_f + &prm(t).C * &u;
+        t_cov = a * &p_f * a.transpose() + &prm(t).Q;
+        mm = a * &mm + &prm(t).C * &u;
+        pm = a * &pm * a.transpose() + &prm(t).Q;
+        xf.push(x_f);
+        pf.push(p_f);
+        xp.push(x.clone());
+        tp.push(t_cov.clone());
+    }
+    let mut xs = xf.clone();
+    let mut ps = pf.clone();
+    for k in (0..steps - 1).rev() {
+        let a = &prm(k + 1).A;
+        let c = &pf[k] * a.transpose() * tp[k].clone().try_inverse().unwrap();
+        xs[k] = &xf[k] + &c * (&xs[k + 1] - &xp[k]);
+        ps[k] = &pf[k] + &c * (&ps[k + 1] - &tp[k]) * c.transpose();
+    }
+    Smoothed {
+        x: xs.iter().map(|v| v.as_slice().to_vec()).collect(),
+        p: ps.iter().map(|m| m.as_slice().to_vec()).collect(),
+        bands: None,
+        notes: vec![],
+        gains: None,
+        forward: None,
     }
 }
 
