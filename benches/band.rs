@@ -9,7 +9,7 @@ use criterion::measurement::{Measurement, ValueFormatter, WallTime};
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use sisfilt::band::{
+use sisfilt::linalg::band::{
     BandCholesky, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand, completion_precision,
     sandwich,
 };

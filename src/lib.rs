@@ -24,11 +24,14 @@
 //! - [`config`]: the TOML as written; [`model`]: the validated model and its parameters at `(t, i)`.
 //! - [`inputs`]: the inputs `u(t, ·)`, generated or read; [`simulate`]: the true system with
 //!   dropouts.
-//! - [`interconnect`]: step 1, the chain solve, on [`band_lu`] (banded LU with a condition
-//!   estimate); [`lifted`]: the whole chain as one system, its `A_eff` and spectral radius.
+//! - [`interconnect`]: step 1, the chain solve, on [`linalg::band_lu`] (banded LU with a
+//!   condition estimate); [`lifted`]: the whole chain as one system, its `A_eff` and spectral
+//!   radius.
 //! - [`filter`]: the Nahi update, the two-step distributed filter, the centralized and the joint
-//!   band-`k` filters; [`band`]: the block-banded matrices of the joint filter (docs/theory.md §8);
-//!   [`linalg`]: small dense kernels on flat slices.
+//!   band-`k` filters, on [`linalg::band`] (the block-banded matrices of the joint filter,
+//!   docs/theory.md §8).
+//! - [`linalg`]: the linear algebra the rest builds on: dense helpers, the banded LU, the
+//!   block-band matrices.
 //! - [`smoother`]: the fixed-interval smoother of each filter (docs/theory.md §9).
 //! - [`accuracy`]: RMSE and NEES against a known truth; [`evaluate`]: the Monte Carlo comparison
 //!   of the filters.
@@ -45,8 +48,6 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod accuracy;
-pub mod band;
-pub mod band_lu;
 pub mod choice;
 pub mod config;
 pub mod error;

@@ -4,9 +4,9 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::band::GenBand;
 use crate::error::Result;
 use crate::interconnect::ChainSolver;
+use crate::linalg::band::GenBand;
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
 

@@ -1,11 +1,11 @@
-//! The block-band operations of docs/theory.md §8 (`sisfilt::band`) against dense nalgebra on random
+//! The block-band operations of docs/theory.md §8 (`sisfilt::linalg::band`) against dense nalgebra on random
 //! symmetric positive definite matrices (seeded), for many shapes including `nb = 1, 2`,
 //! `k = 0`, `k = nb − 1` and block sizes 1–5 (5 exercises the unspecialised kernels).
 
 use nalgebra::DMatrix;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use sisfilt::band::{
+use sisfilt::linalg::band::{
     BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
     completion_precision, sandwich,
 };

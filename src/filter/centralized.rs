@@ -12,6 +12,7 @@ use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
 use crate::filter::nahi::{self, CovarianceForm, Workspace};
 use crate::lifted::{LiftedMoments, LiftedSystem};
+use crate::linalg::symmetrize;
 use crate::model::Model;
 
 /// Default largest lifted state size `N·n` the centralized filter accepts.
@@ -156,7 +157,7 @@ impl<'m> CentralizedFilter<'m> {
         let mut pf = DMatrixViewMut::from_slice(&mut self.p_filt, size, size);
         pf.copy_from(&t_mat);
         pf.gemm_tr(-1.0, &jt, &gain, 1.0);
-        nahi::symmetrize(&mut pf);
+        symmetrize(&mut pf);
         self.log_likelihood = Some(log_likelihood);
         Ok(())
     }

@@ -7,6 +7,7 @@
 use nalgebra::{Cholesky, Const, DMatrix, SMatrix, SVector};
 
 use crate::filter::nahi::{self, Measurement, Workspace};
+use crate::linalg::symmetrize;
 use crate::model::{Model, Params};
 
 /// The local data of one update.
@@ -272,16 +273,6 @@ fn log_gaussian<const Q: usize>(l: &SMatrix<f64, Q, Q>, v: &SVector<f64, Q>) -> 
     let log_det: f64 = (0..Q).map(|k| 2.0 * l[(k, k)].ln()).sum();
     let white = l.solve_lower_triangular(v)?;
     Some(-0.5 * (Q as f64 * nahi::LN_2PI + log_det + white.norm_squared()))
-}
-
-fn symmetrize<const N: usize>(m: &mut SMatrix<f64, N, N>) {
-    for r in 0..N {
-        for c in 0..r {
-            let v = 0.5 * (m[(r, c)] + m[(c, r)]);
-            m[(r, c)] = v;
-            m[(c, r)] = v;
-        }
-    }
 }
 
 /// The gain `L`, the Joseph-form `P(t|t)` and the Cholesky factor of `Σ`.

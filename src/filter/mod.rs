@@ -10,9 +10,9 @@ pub mod two_step;
 
 use serde::{Deserialize, Serialize};
 
-use crate::band::SymBand;
 use crate::choice::{Choice, Variant};
 use crate::interconnect::SolverKind;
+use crate::linalg::band::SymBand;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
 pub use joint::{JointFilter, JointOptions};

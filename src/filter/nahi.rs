@@ -22,6 +22,7 @@
 
 use nalgebra::{Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector};
 
+use crate::linalg::symmetrize;
 use crate::model::{Model, Params};
 
 /// The innovation of one subsystem, `ỹ = y − R u − p J x̂` (`H = p J`), written into `out`
@@ -501,18 +502,6 @@ pub fn propagate_cov(
     }
     out.gemm(1.0, &ws.nn, &ws.f_tr, 1.0);
     symmetrize(&mut out);
-}
-
-/// `m ← (m + mᵀ) / 2`.
-pub(crate) fn symmetrize(m: &mut DMatrixViewMut<f64>) {
-    let n = m.nrows();
-    for r in 0..n {
-        for c in 0..r {
-            let v = 0.5 * (m[(r, c)] + m[(c, r)]);
-            m[(r, c)] = v;
-            m[(c, r)] = v;
-        }
-    }
 }
 
 #[cfg(test)]

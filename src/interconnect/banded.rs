@@ -9,8 +9,8 @@
 //! only on the chain, never on the thread count, so neither do the results. A split whose
 //! halves are ill-conditioned is not used (the whole system is solved at once).
 
-use crate::band_lu::{BandLu, SplitBandLu};
 use crate::error::{Error, Result};
+use crate::linalg::band_lu::{BandLu, SplitBandLu};
 use crate::model::Model;
 
 /// Largest 1-norm condition estimate of a well-posed interconnection system (docs/theory.md §2).

@@ -9,8 +9,8 @@ use std::io::Write;
 use serde::{Deserialize, Serialize};
 
 use crate::accuracy::{AccuracyReport, DetectionReport};
-use crate::band::SymBand;
 use crate::error::{Error, Result};
+use crate::linalg::band::SymBand;
 use rayon::prelude::*;
 
 use crate::choice::{Choice, Variant};

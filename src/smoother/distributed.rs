@@ -96,13 +96,7 @@ impl Rts {
         let mut out = nalgebra::DMatrixViewMut::from_slice(ps, n, n);
         out.copy_from(&p);
         out.gemm_tr(1.0, &self.gain_tr, &self.tmp, 1.0);
-        for r in 0..n {
-            for c in 0..r {
-                let v = 0.5 * (out[(r, c)] + out[(c, r)]);
-                out[(r, c)] = v;
-                out[(c, r)] = v;
-            }
-        }
+        crate::linalg::symmetrize(&mut out);
         true
     }
 }

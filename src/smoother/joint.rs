@@ -19,13 +19,13 @@
 
 use std::sync::Arc;
 
-use crate::band::{
-    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
-    diag_t_times_gen, gemm_acc, gen_t_times_gen, sym_times_gen,
-};
 use crate::error::{Error, Result};
 use crate::filter::joint::{band_error, load_diagonal};
 use crate::filter::{ChainFilter, JointFilter, JointOptions};
+use crate::linalg::band::{
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
+    diag_t_times_gen, gemm_acc, gen_t_times_gen, sym_times_gen,
+};
 use crate::model::Model;
 use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 

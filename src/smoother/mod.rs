@@ -16,9 +16,9 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 
-use crate::band::{BandCholesky, GenBand, SymBand};
 use crate::error::Result;
 use crate::filter::JointOptions;
+use crate::linalg::band::{BandCholesky, GenBand, SymBand};
 use crate::linalg::psd_sqrt;
 use crate::model::Model;
 

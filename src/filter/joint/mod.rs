@@ -24,14 +24,14 @@ pub use schedule::{JointSchedule, ScheduledJoint};
 
 use serde::Serialize;
 
-use crate::band::{
-    BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
-    completion_precision, sandwich,
-};
 use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedMoments, LiftedSystem, LiftedWorkspace, a_eff_band, propagate_mean};
+use crate::linalg::band::{
+    BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
+    completion_precision, sandwich,
+};
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
 

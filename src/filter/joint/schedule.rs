@@ -2,11 +2,11 @@
 //! (docs/theory.md §8): [`JointSchedule`] and [`ScheduledJoint`].
 
 use super::{JointFilter, JointOptions};
-use crate::band::BandCholesky;
 use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedWorkspace, propagate_mean};
+use crate::linalg::band::BandCholesky;
 use crate::model::Model;
 
 /// One step of a [`JointSchedule`].

@@ -1,6 +1,27 @@
-//! Small dense kernels on flat slices, shared by the simulator and the filters.
+//! The linear algebra of `sisfilt`, in one tree: the dense helpers below (on flat slices and
+//! nalgebra matrices), [`band_lu`] (the banded LU of the chain solve, docs/theory.md §2) and
+//! [`band`] (the block-banded symmetric and general matrices of the joint filter and its
+//! smoother, docs/theory.md §8–§9).
 
-use nalgebra::{DMatrix, SymmetricEigen};
+pub mod band;
+pub mod band_lu;
+
+use nalgebra::{DMatrix, Dim, Matrix, StorageMut, SymmetricEigen};
+
+/// `M ← (M + Mᵀ) / 2` for a square matrix of any size and storage: every covariance is
+/// symmetrised after it is formed, since rounding leaves it slightly asymmetric
+/// (docs/theory.md §12). A flat column-major block is symmetrised through a view,
+/// `symmetrize(&mut DMatrixViewMut::from_slice(c, m, m))`.
+pub fn symmetrize<D: Dim, S: StorageMut<f64, D, D>>(m: &mut Matrix<f64, D, D, S>) {
+    let n = m.nrows();
+    for c in 0..n {
+        for r in c + 1..n {
+            let v = 0.5 * (m[(r, c)] + m[(c, r)]);
+            m[(r, c)] = v;
+            m[(c, r)] = v;
+        }
+    }
+}
 
 /// `out += A x` for a column-major `A` (`out.len() = A.nrows()`, `x.len() = A.ncols()`).
 #[inline]

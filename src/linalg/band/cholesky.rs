@@ -1,10 +1,12 @@
 //! docs/theory.md §8 update steps 4–6: block-banded Cholesky, solves and selected inversion.
 
-use super::kernels::{
-    block_mul_add_body, chol_lower, nt_acc_fast, simd_available, symmetrise, tn_multi_neg,
-    tri_lower_inv,
+use super::strips::{
+    block_mul_add_body, chol_lower, nt_acc_fast, simd_available, tn_multi_neg, tri_lower_inv,
 };
+use nalgebra::DMatrixViewMut;
+
 use super::{BandError, SymBand};
+use crate::linalg::symmetrize;
 
 /// Block-banded Cholesky factor `Λ = L Lᵀ` (`L` lower block-banded with bandwidth `k`) of a
 /// symmetric positive definite [`SymBand`] of width `k`, with the solves and the block
@@ -312,7 +314,7 @@ fn diagonal_block(bs: usize, simd: bool, u: &[f64], offd: &[f64], et: &[f64], di
     if !et.is_empty() {
         nt_acc_fast(simd, bs, diag, &offd[..et.len()], et, -1.0);
     }
-    symmetrise(bs, diag);
+    symmetrize(&mut DMatrixViewMut::from_slice(diag, bs, bs));
 }
 
 /// Selected inversion reading the band rows of `out` itself (few blocks below the diagonal).

@@ -51,15 +51,15 @@ macro_rules! specialise_bk {
 
 mod cholesky;
 mod completion;
-mod kernels;
 mod products;
 mod sandwich;
+mod strips;
 
 pub use cholesky::BandCholesky;
 pub use completion::{CompletionWorkspace, completion_precision};
-pub use kernels::gemm_acc;
 pub use products::{diag_t_times_gen, gen_t_times_gen, sym_times_gen};
 pub use sandwich::{SandwichWorkspace, sandwich};
+pub use strips::gemm_acc;
 
 use nalgebra::DMatrix;
 

@@ -1,7 +1,7 @@
 //! Banded products for the information-form smoother (docs/theory.md §9 step 2) and band–vector
 //! products.
 
-use super::kernels::{block_strip_acc, simd_available};
+use super::strips::{block_strip_acc, simd_available};
 use super::{GenBand, SymBand};
 
 /// One `bs × bs` scratch block: on the stack up to 4 × 4 (the kernels' fixed sizes), else on

@@ -1,6 +1,6 @@
 //! docs/theory.md §8 update step 3: the precision of the maximum-entropy completion of a band.
 
-use super::kernels::chol_lower;
+use super::strips::chol_lower;
 use super::{BandError, SymBand};
 
 /// Preallocated buffers for [`completion_precision`]: one dense clique of `m = (k+1)·bs` and

@@ -531,18 +531,6 @@ pub fn tri_lower_inv(m: usize, l: &[f64], linv: &mut [f64]) {
     }
 }
 
-/// `C = (C + Cᵀ)/2` for a column-major `m × m` block.
-#[inline(always)]
-pub fn symmetrise(m: usize, c: &mut [f64]) {
-    for j in 0..m {
-        for i in j + 1..m {
-            let v = 0.5 * (c[i + j * m] + c[j + i * m]);
-            c[i + j * m] = v;
-            c[j + i * m] = v;
-        }
-    }
-}
-
 /// `out += α · op(a) · op(b)` for square `n × n` blocks, `op(x) = xᵀ` when the flag is set
 /// (the general block product of the smoother's band products).
 #[inline]

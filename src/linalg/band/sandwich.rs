@@ -1,6 +1,6 @@
 //! docs/theory.md §8 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
-use super::kernels::{nt_acc_fast, simd_available};
+use super::strips::{nt_acc_fast, simd_available};
 use super::{GenBand, SymBand};
 
 /// Preallocated buffers for [`sandwich`]: a ring of half block rows of `P` and one block
