@@ -44,6 +44,8 @@
 //! The command line (`src/main.rs` and `src/app/`, a file per command) is the binary's own:
 //! this library knows nothing of it.
 
+// `unsafe` lives in one module, linalg::band::avx2, behind a token of detected CPU support.
+#![deny(unsafe_code)]
 // Index loops mirror the formulas of docs/theory.md; iterator chains would hide them.
 #![allow(clippy::needless_range_loop)]
 

@@ -1,5 +1,7 @@
 //! The `sisfilt` binary: parses the command line, runs the command, reports errors (docs/theory.md §13).
 
+#![forbid(unsafe_code)]
+
 use std::process::ExitCode;
 
 use clap::Parser;

@@ -719,7 +719,13 @@ fn single_two_rows() -> Model {
 fn lose_some(y: &[f64], t: usize) -> Vec<f64> {
     y.iter()
         .enumerate()
-        .map(|(k, &v)| if (k * 7 + t) % 3 == 0 { f64::NAN } else { v })
+        .map(|(k, &v)| {
+            if (k * 7 + t).is_multiple_of(3) {
+                f64::NAN
+            } else {
+                v
+            }
+        })
         .collect()
 }
 

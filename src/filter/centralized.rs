@@ -195,12 +195,12 @@ impl<'m> CentralizedFilter<'m> {
                 hb.scale_mut(p);
                 let mut rb = reff.view_mut((i * q, i * q), (q, q));
                 rb.copy_from(&prm.M);
-                if let Some(mom) = &self.moments {
-                    if p * (1.0 - p) != 0.0 {
-                        mom.second_moment(i, n, &mut self.s_ii);
-                        self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
-                        rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
-                    }
+                if let Some(mom) = &self.moments
+                    && p * (1.0 - p) != 0.0
+                {
+                    mom.second_moment(i, n, &mut self.s_ii);
+                    self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
+                    rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
                 }
                 nahi::innovation(
                     prm,

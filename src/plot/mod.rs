@@ -63,7 +63,7 @@ pub(crate) const PALETTE: [RGBColor; 10] = [
 /// (`evaluate --smooth` compares fifteen filters), and so on.
 pub(crate) fn palette(k: usize) -> RGBColor {
     let RGBColor(r, g, b) = PALETTE[k % PALETTE.len()];
-    if (k / PALETTE.len()) % 2 == 0 {
+    if (k / PALETTE.len()).is_multiple_of(2) {
         RGBColor(r, g, b)
     } else {
         RGBColor(r / 2, g / 2, b / 2)

@@ -235,15 +235,15 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
     }
     let steps = data.truth.len();
     // Every file must end where the truth ends.
-    if let Some(s) = smooth.as_mut() {
-        if s.read_step(&mut x_smooth)?.is_some() {
-            return Err(ends_early(&truth_name, s.name(), steps).into());
-        }
+    if let Some(s) = smooth.as_mut()
+        && s.read_step(&mut x_smooth)?.is_some()
+    {
+        return Err(ends_early(&truth_name, s.name(), steps).into());
     }
-    if let Some(m) = meas.as_mut() {
-        if m.reader.read_step(&mut y)?.is_some() {
-            return Err(ends_early(&truth_name, m.reader.name(), steps).into());
-        }
+    if let Some(m) = meas.as_mut()
+        && m.reader.read_step(&mut y)?.is_some()
+    {
+        return Err(ends_early(&truth_name, m.reader.name(), steps).into());
     }
     if let Some(meas_path) = &args.meas {
         let (direct, why_separate) =

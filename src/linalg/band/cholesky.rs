@@ -1,11 +1,9 @@
 //! docs/theory.md §8 update steps 4–6: block-banded Cholesky, solves and selected inversion.
 
-use super::strips::{
-    block_mul_add_body, chol_lower, nt_acc_fast, simd_available, tn_multi_neg, tri_lower_inv,
-};
+use super::strips::{block_mul_add_body, chol_lower, nt_acc_fast, tn_multi_neg, tri_lower_inv};
 use nalgebra::DMatrixViewMut;
 
-use super::{BandError, SymBand};
+use super::{Avx2Fma, BandError, SymBand};
 use crate::linalg::symmetrize;
 
 /// Block-banded Cholesky factor `Λ = L Lᵀ` (`L` lower block-banded with bandwidth `k`) of a
@@ -166,7 +164,7 @@ impl BandCholesky {
 #[inline]
 fn padded_len(blocks: usize, bb: usize) -> usize {
     let len = blocks * bb;
-    if blocks > 1 && ((len - bb) * size_of::<f64>()) % 1024 == 0 {
+    if blocks > 1 && ((len - bb) * size_of::<f64>()).is_multiple_of(1024) {
         len + bb
     } else {
         len
@@ -176,7 +174,7 @@ fn padded_len(blocks: usize, bb: usize) -> usize {
 #[inline(always)]
 fn factor_body(bs: usize, f: &mut BandCholesky, a: &SymBand) -> Result<(), BandError> {
     let (nb, k) = (f.nb, f.k);
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let bb = bs * bs;
     let row_len = padded_len(k + 1, bb);
     let off = |i: usize, j: usize| i * row_len + (k + j - i) * bb;
@@ -309,7 +307,14 @@ fn selected_inverse_body(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
 /// Diagonal block `P_jj = L_jj⁻ᵀ L_jj⁻¹ − Σ_l P_{j,l} E_{l,j}` (symmetrised) from the
 /// blocks `P_{j,j+1..j+nl}` (`offd`, a strip) and `Eᵀ` (`et`): one `X Yᵀ` product.
 #[inline(always)]
-fn diagonal_block(bs: usize, simd: bool, u: &[f64], offd: &[f64], et: &[f64], diag: &mut [f64]) {
+fn diagonal_block(
+    bs: usize,
+    simd: Option<Avx2Fma>,
+    u: &[f64],
+    offd: &[f64],
+    et: &[f64],
+    diag: &mut [f64],
+) {
     diag.copy_from_slice(u);
     if !et.is_empty() {
         nt_acc_fast(simd, bs, diag, &offd[..et.len()], et, -1.0);
@@ -322,7 +327,7 @@ fn diagonal_block(bs: usize, simd: bool, u: &[f64], offd: &[f64], et: &[f64], di
 fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     let (nb, k) = (f.nb, f.k);
     let w = out.width();
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let bb = bs * bs;
     let strip = (w + 1) * bb;
     for j in (0..nb).rev() {
@@ -381,7 +386,7 @@ fn selected_inverse_band(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
 fn selected_inverse_rows(bs: usize, f: &mut BandCholesky, out: &mut SymBand) {
     let (nb, k) = (f.nb, f.k);
     let w = out.width();
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let bb = bs * bs;
     let fw = padded_len(2 * w + 1, bb);
     let cap = (4 * (k + 1)).min(nb);

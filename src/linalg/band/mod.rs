@@ -49,12 +49,16 @@ macro_rules! specialise_bk {
     };
 }
 
+// The one module with `unsafe` code: the AVX2 kernels, reached only through a detected token.
+#[allow(unsafe_code)]
+mod avx2;
 mod cholesky;
 mod completion;
 mod products;
 mod sandwich;
 mod strips;
 
+pub use avx2::Avx2Fma;
 pub use cholesky::BandCholesky;
 pub use completion::{CompletionWorkspace, completion_precision};
 pub use products::{diag_t_times_gen, gen_t_times_gen, sym_times_gen};
@@ -206,7 +210,7 @@ impl SymBand {
     /// Reads the band `|i − j| ≤ w` of a dense matrix from its upper blocks (the matrix is
     /// assumed symmetric; its lower blocks are not read).
     pub fn from_dense(a: &DMatrix<f64>, bs: usize, w: usize) -> Self {
-        assert!(bs > 0 && a.nrows() == a.ncols() && a.nrows() % bs == 0);
+        assert!(bs > 0 && a.nrows() == a.ncols() && a.nrows().is_multiple_of(bs));
         let mut s = Self::zeros(a.nrows() / bs, bs, w);
         for i in 0..s.nb {
             for d in 0..=s.w.min(s.nb - 1 - i) {
@@ -325,7 +329,7 @@ impl GenBand {
 
     /// Reads the blocks `|i − j| ≤ b` of a dense matrix.
     pub fn from_dense(a: &DMatrix<f64>, bs: usize, b: usize) -> Self {
-        assert!(bs > 0 && a.nrows() == a.ncols() && a.nrows() % bs == 0);
+        assert!(bs > 0 && a.nrows() == a.ncols() && a.nrows().is_multiple_of(bs));
         let mut g = Self::zeros(a.nrows() / bs, bs, b);
         for i in 0..g.nb {
             for j in i.saturating_sub(g.b)..(i + g.b + 1).min(g.nb) {

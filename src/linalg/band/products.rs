@@ -1,7 +1,8 @@
 //! Banded products for the information-form smoother (docs/theory.md §9 step 2) and band–vector
 //! products.
 
-use super::strips::{block_strip_acc, simd_available};
+use super::Avx2Fma;
+use super::strips::block_strip_acc;
 use super::{GenBand, SymBand};
 
 /// One `bs × bs` scratch block: on the stack up to 4 × 4 (the kernels' fixed sizes), else on
@@ -46,7 +47,7 @@ pub fn sym_times_gen(s: &SymBand, a: &GenBand, out: &mut GenBand) {
 fn sym_times_gen_body(bs: usize, s: &SymBand, a: &GenBand, out: &mut GenBand) {
     let (nb, k, b) = (a.nb(), s.width(), a.half_width());
     let (hw, bb) = (out.half_width(), bs * bs);
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let mut scratch = BlockScratch::default();
     let x = scratch.get(bb);
     out.fill_zero();
@@ -76,7 +77,7 @@ pub fn gen_t_times_gen(a: &GenBand, w: &GenBand, out: &mut SymBand) {
 fn gen_t_times_gen_body(bs: usize, a: &GenBand, w: &GenBand, out: &mut SymBand) {
     let (nb, b, hw) = (a.nb(), a.half_width(), w.half_width());
     let (width, bb) = (out.width(), bs * bs);
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let mut scratch = BlockScratch::default();
     let x = scratch.get(bb);
     out.fill_zero();
@@ -118,7 +119,7 @@ fn diag_t_times_gen_body<'a>(
     out: &mut GenBand,
 ) {
     let bb = bs * bs;
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let mut scratch = BlockScratch::default();
     let x = scratch.get(bb);
     for i in 0..w.nb() {

@@ -1,6 +1,7 @@
 //! docs/theory.md §8 predict step 4: the band of `A P Aᵀ` for block-banded `A` and `P`.
 
-use super::strips::{nt_acc_fast, simd_available};
+use super::Avx2Fma;
+use super::strips::nt_acc_fast;
 use super::{GenBand, SymBand};
 
 /// Preallocated buffers for [`sandwich`]: a ring of half block rows of `P` and one block
@@ -96,7 +97,7 @@ fn sandwich_body(
 ) {
     let (nb, b, k) = (ws.nb, a.half_width(), out.width());
     let (wp, ring) = shape(nb, b, k);
-    let simd = simd_available();
+    let simd = Avx2Fma::detect();
     let bb = bs * bs;
     let row_len = (wp + 1) * bb;
     out.fill_zero();
