@@ -3,12 +3,10 @@
 //! roxmltree): their texts, legends and the number of marks, against figures computed here from
 //! the CSV and JSON files themselves; the same input must give the same bytes.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use common::{Csv, one_error_line, sisfilt};
+use crate::common::{Csv, one_error_line, sisfilt};
 
 fn config(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

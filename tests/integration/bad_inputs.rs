@@ -21,15 +21,13 @@
 //! its bytes and its mode, every symbolic link its target.
 //! Every case runs; the test fails listing all the cases that went wrong.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::Duration;
 
-use common::sisfilt;
+use crate::common::sisfilt;
 use serde::Deserialize;
 
 /// At least this many cases (issue 7).

@@ -1,11 +1,9 @@
 //! Config validation (docs/theory.md §13): every kind of bad config is rejected with a message that names
 //! the file and the TOML key (or, for errors the TOML parser finds, the line).
 
-mod common;
-
 use std::path::PathBuf;
 
-use common::{one_error_line, sisfilt, write_file};
+use crate::common::{one_error_line, sisfilt, write_file};
 use sisfilt::config::ConfigSource;
 use sisfilt::model::Model;
 

@@ -3,8 +3,7 @@
 //! against the centralized filter of docs/theory.md §7 (a dense lifted Nahi/Kalman filter), in both
 //! dropout modes, on every shipped config and on small chains with overrides and inputs.
 
-mod common;
-use common::{Sub, dense_a_eff, model_from, shipped_model, simulate_run};
+use crate::common::{Sub, dense_a_eff, model_from, shipped_model, simulate_run};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment, Update,
 };
@@ -400,7 +399,7 @@ fn scheduled_joint_filter_equals_joint_filter() {
 fn joint_filter_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
     let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/paper.toml");
-    common::sisfilt()
+    crate::common::sisfilt()
         .arg("simulate")
         .arg(&config)
         .arg("--out")
@@ -409,7 +408,7 @@ fn joint_filter_on_the_command_line() {
         .success();
     let meas = dir.path().join("measurements.csv");
     let json = dir.path().join("joint.json");
-    common::sisfilt()
+    crate::common::sisfilt()
         .args(["estimate", "--filter", "joint", "--band", "2", "--meas"])
         .arg(&meas)
         .arg("--out")
@@ -439,7 +438,7 @@ fn joint_filter_on_the_command_line() {
         vec!["--second-moment", "band"],
         vec!["--filter", "joint", "--second-moment", "paper"],
     ] {
-        let out = common::sisfilt()
+        let out = crate::common::sisfilt()
             .arg("estimate")
             .args(&bad)
             .arg("--meas")
@@ -447,7 +446,7 @@ fn joint_filter_on_the_command_line() {
             .output()
             .unwrap();
         assert_eq!(out.status.code(), Some(2), "{bad:?}");
-        let line = common::one_error_line(&out.stderr);
+        let line = crate::common::one_error_line(&out.stderr);
         assert!(
             line.contains("joint") || line.contains("distributed"),
             "{line}"

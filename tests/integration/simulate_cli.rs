@@ -1,15 +1,11 @@
 //! `sisfilt simulate` (docs/theory.md §13): the files it writes, their layout, determinism, the
 //! dropout frequency, the dynamics (P1)–(P4) of the truth, `--mark-missing` and `--out`.
 #![allow(non_snake_case)]
-// Index loops mirror the formulas of docs/theory.md, as in the library.
-#![allow(clippy::needless_range_loop)]
-
-mod common;
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
-use common::{
+use crate::common::{
     Csv, dense_interconnect, header, mat, one_error_line, sisfilt, toml_matrix, write_file,
 };
 use nalgebra::{DMatrix, DVector};
@@ -744,7 +740,7 @@ fn file_inputs_are_read_relative_to_the_config() {
 
 #[test]
 fn every_shipped_config_simulates() {
-    for config in common::shipped_configs() {
+    for config in crate::common::shipped_configs() {
         let text = std::fs::read_to_string(&config).unwrap();
         let raw: toml::Value = toml::from_str(&text).unwrap();
         let rows = |key: &str| {

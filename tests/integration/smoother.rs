@@ -3,11 +3,7 @@
 //! moments and a dense solve of (P2)–(P4)), a plain RTS smoother written here, and each other
 //! where the maths says they agree.
 
-// Index loops mirror the formulas of the batch estimator.
-#![allow(clippy::needless_range_loop)]
-
-mod common;
-use common::{dense_interconnect, model_from, shipped_model, simulate_run};
+use crate::common::{dense_interconnect, model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
@@ -203,7 +199,7 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
     }
 }
 
-fn lose_some(run: &common::Run, q: usize) -> Vec<Vec<f64>> {
+fn lose_some(run: &crate::common::Run, q: usize) -> Vec<Vec<f64>> {
     run.y
         .iter()
         .enumerate()
@@ -567,7 +563,7 @@ fn joint_smoother_matches_the_optimal_smoother_in_monte_carlo() {
 fn smoothing_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
     let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/platoon.toml");
-    common::sisfilt()
+    crate::common::sisfilt()
         .arg("simulate")
         .arg(&config)
         .arg("--out")
@@ -583,7 +579,7 @@ fn smoothing_on_the_command_line() {
     };
     for filter in ["distributed", "centralized", "joint"] {
         let run = |smooth: bool, out: &std::path::Path| {
-            let mut cmd = common::sisfilt();
+            let mut cmd = crate::common::sisfilt();
             cmd.args(["estimate", "--filter", filter, "--meas"])
                 .arg(&meas)
                 .arg("--truth")
@@ -621,7 +617,7 @@ fn smoothing_on_the_command_line() {
         vec!["--smooth", "--max-memory", "10K"],
     ] {
         let out_file = dir.path().join("bad.csv");
-        let out = common::sisfilt()
+        let out = crate::common::sisfilt()
             .arg("estimate")
             .args(&bad)
             .arg("--meas")
@@ -631,7 +627,7 @@ fn smoothing_on_the_command_line() {
             .output()
             .unwrap();
         assert_eq!(out.status.code(), Some(2), "{bad:?}");
-        common::one_error_line(&out.stderr);
+        crate::common::one_error_line(&out.stderr);
         assert!(!out_file.exists(), "{bad:?} wrote its output");
     }
 }

@@ -6,8 +6,6 @@
 //! stays consistent (average NEES 1).
 #![allow(non_snake_case)]
 
-mod common;
-
 use std::path::PathBuf;
 
 use nalgebra::{DMatrix, SymmetricEigen};
@@ -433,7 +431,7 @@ fn p_1_is_a_textbook_kalman_filter() {
             p_filt.push((DMatrix::identity(n, n) - &k * &chain.J) * t);
         }
         let z: Vec<_> = x_filt.iter().map(|x| &chain.D * x).collect();
-        let v = common::dense_interconnect(chain.plus, chain.minus, &g, &z).unwrap();
+        let v = crate::common::dense_interconnect(chain.plus, chain.minus, &g, &z).unwrap();
         for i in 0..big_n {
             x_pred[i] = &chain.A * &x_filt[i] + &chain.B * &v[i];
             t_pred[i] = &chain.A * &p_filt[i] * chain.A.transpose() + &chain.Q;
@@ -472,13 +470,13 @@ fn p_0_ignores_the_measurements_and_is_the_open_loop_prediction() {
     let run = simulate_run(&model, 120, 11);
     assert!(run.gamma.iter().flatten().all(|&g| !g));
     let (n, big_n) = (2, chain.subsystems);
-    let sub = common::Sub {
+    let sub = crate::common::Sub {
         A: chain.A.clone(),
         B: chain.B.clone(),
         D: chain.D.clone(),
         G: chain.G.clone(),
     };
-    let a_eff = common::dense_a_eff(chain.plus, chain.minus, &vec![sub; big_n]);
+    let a_eff = crate::common::dense_a_eff(chain.plus, chain.minus, &vec![sub; big_n]);
     let mut x = nalgebra::DVector::from_iterator(
         big_n * n,
         chain.mean.iter().copied().cycle().take(big_n * n),

@@ -1,14 +1,10 @@
 //! `sisfilt check` (docs/theory.md §2, §13): dimensions, the spectral radius of `A_eff` (checked against
 //! an independent dense computation), the instability warning and ill-posed interconnections.
 #![allow(non_snake_case)]
-// Index loops mirror the formulas of docs/theory.md, as in the library.
-#![allow(clippy::needless_range_loop)]
-
-mod common;
 
 use std::path::Path;
 
-use common::{
+use crate::common::{
     Sub, dense_a_eff, dense_interconnect, mat, one_error_line, printed_radii, sisfilt,
     spectral_radius, toml_matrix, write_file,
 };
@@ -61,7 +57,7 @@ const DENSE_CHECK_MAX: usize = 40;
 
 #[test]
 fn shipped_configs_pass_with_dimensions_and_spectral_radius() {
-    for config in common::shipped_configs() {
+    for config in crate::common::shipped_configs() {
         let text = std::fs::read_to_string(&config).unwrap();
         let raw: toml::Value = toml::from_str(&text).unwrap();
         let rows = |key: &str| {

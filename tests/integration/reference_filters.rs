@@ -2,8 +2,7 @@
 //! independent references: a dense lifted Kalman filter built here from a dense solve of
 //! (P2)–(P4), Monte Carlo moments, and the distributed filter where they must agree.
 
-mod common;
-use common::{model_from, shipped_model, simulate_run};
+use crate::common::{model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::choice::Choice;
 use sisfilt::evaluate::{Compared, EvaluateOptions, Evaluation, evaluate};

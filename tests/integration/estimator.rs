@@ -2,8 +2,7 @@
 //! against single-subsystem runs, the known-dropout mode against a textbook Kalman filter
 //! written here, and Monte Carlo checks of the reported covariance.
 
-mod common;
-use common::{model_from, shipped_model, simulate_run};
+use crate::common::{model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions};
 use sisfilt::model::Model;

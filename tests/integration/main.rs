@@ -1,0 +1,22 @@
+//! The integration tests, one binary with a module per area (linked once), sharing the
+//! fixtures of [`common`]. `tests/allocation.rs` stays a binary of its own: its counting
+//! global allocator would count the allocations of every test running beside it.
+
+// Index loops mirror the formulas of docs/theory.md, as in the library.
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+mod bad_inputs;
+mod band;
+mod check_cli;
+mod config_errors;
+mod estimate_cli;
+mod estimator;
+mod evaluate_cli;
+mod joint_filter;
+mod plot_cli;
+mod properties;
+mod reference_filters;
+mod simulate_cli;
+mod smoother;
