@@ -30,6 +30,14 @@ pub enum Error {
         msg: String,
     },
 
+    /// A JSON file is malformed, or not the document expected; `line` is 1-based.
+    #[error("{file}: line {line}: {msg}")]
+    Json {
+        file: String,
+        line: usize,
+        msg: String,
+    },
+
     /// An input file as a whole is unusable (missing rows at the end, wrong size).
     #[error("{file}: {msg}")]
     File { file: String, msg: String },
@@ -102,6 +110,16 @@ impl Error {
                 i: i + 1,
                 msg: msg(),
             }),
+        }
+    }
+
+    /// `file` is not `expected` (e.g. "a run record written by `sisfilt simulate`"): the
+    /// parser's error `e`, at its line.
+    pub fn json(file: impl Into<String>, expected: &str, e: &serde_json::Error) -> Self {
+        Error::Json {
+            file: file.into(),
+            line: e.line(),
+            msg: format!("not {expected}: {e}"),
         }
     }
 

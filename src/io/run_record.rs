@@ -47,13 +47,13 @@ impl RunRecord {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(Error::io(&path, e)),
         };
-        serde_json::from_str(&text)
-            .map(Some)
-            .map_err(|e| Error::Csv {
-                file: path.display().to_string(),
-                line: e.line() as u64,
-                msg: format!("not a run record written by `sisfilt simulate`: {e}"),
-            })
+        serde_json::from_str(&text).map(Some).map_err(|e| {
+            Error::json(
+                path.display().to_string(),
+                "a run record written by `sisfilt simulate`",
+                &e,
+            )
+        })
     }
 
     /// The recorded config, named after the record for messages.

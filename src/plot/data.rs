@@ -187,12 +187,12 @@ impl EstimatesFile {
             .is_some_and(|e| e.eq_ignore_ascii_case("json"))
         {
             let doc: EstimatesDocument =
-                serde_json::from_reader(open(path)?).map_err(|e| Error::Csv {
-                    file: name.clone(),
-                    line: e.line() as u64,
-                    msg: format!(
-                        "not the JSON of `sisfilt estimate --format json` (expected its metadata, `columns` and `estimates`): {e}"
-                    ),
+                serde_json::from_reader(open(path)?).map_err(|e| {
+                    Error::json(
+                        name.clone(),
+                        "the JSON of `sisfilt estimate --format json` (expected its metadata, `columns` and `estimates`)",
+                        &e,
+                    )
                 })?;
             let columns = columns_of(&doc.columns)?;
             let first_t = doc.estimates.first().and_then(|r| r.first().copied());

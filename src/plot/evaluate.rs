@@ -73,10 +73,8 @@ fn read(path: &Path) -> Result<EvaluationFile> {
         file: name.clone(),
         msg: format!("not the JSON of `sisfilt evaluate --out`: {what}"),
     };
-    let syntax = |e: serde_json::Error| Error::Csv {
-        file: name.clone(),
-        line: e.line() as u64,
-        msg: format!("not the JSON of `sisfilt evaluate --out`: {e}"),
+    let syntax = |e: serde_json::Error| {
+        Error::json(name.clone(), "the JSON of `sisfilt evaluate --out`", &e)
     };
     /// Only whether the document is a sweep.
     #[derive(Deserialize)]
