@@ -552,8 +552,7 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     if let Some((_, r)) = direct {
         legend.extend(measurement_legend(
             d,
-            MEASURED,
-            &format!("measurement y{}", r + 1),
+            &[(MEASURED, format!("measurement y{}", r + 1))],
         ));
     }
     legend.push(lost_entry(d));
@@ -640,15 +639,10 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
     let steps = d.truth.len();
     let range = extent(m.y.iter());
     let color = |r: usize| palette(r + 2);
-    let mut legend: Vec<(Swatch, String)> = if d.arrival.is_some() {
-        measurement_legend(d, MEASURED, &format!("y1..y{}", m.q))
-    } else {
-        let mut legend: Vec<_> = (0..m.q)
-            .map(|r| (Swatch::Dot(color(r)), format!("y{}", r + 1)))
-            .collect();
-        legend.extend(measurement_legend(d, MEASURED, "").into_iter().skip(1));
-        legend
-    };
+    let rows: Vec<_> = (0..m.q)
+        .map(|r| (color(r), format!("y{}", r + 1)))
+        .collect();
+    let mut legend = measurement_legend(d, &rows);
     legend.push(lost_entry(d));
     legend.push((
         Swatch::None,
@@ -674,44 +668,49 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
 }
 
 /// A measurement the mixture update set aside as lost (`π ≤ 0.1`), and one it weighed
-/// (`0.1 < π < 0.9`); one it took (`π ≥ 0.9`) keeps the colour of the measurements.
+/// (`0.1 < π < 0.9`); one it took (`π ≥ 0.9`) has the colour of the measurements.
 const SET_ASIDE: RGBColor = LOST;
 const WEIGHED: RGBColor = RGBColor(240, 170, 0);
 
-/// The colour of a measurement: by `π` when the estimates carry it, else `arrived` for one
-/// that arrived and grey for one that was lost.
+/// The colour of a measurement: by `π` when the estimates carry it (the same for every row
+/// of `y`, as the legend says), else `arrived` for one that arrived and grey for one that
+/// was lost.
 fn measurement_color(d: &SeriesData, t: usize, arrived: RGBColor) -> RGBColor {
     match d.arrival.as_ref().map(|pi| pi[t]) {
         Some(pi) if pi <= 0.1 => SET_ASIDE,
         Some(pi) if pi < 0.9 => WEIGHED,
-        Some(_) => arrived,
+        Some(_) => MEASURED,
         None if d.gamma[t] => arrived,
         None => GREY,
     }
 }
 
-/// The legend of the measurement marks: `name` for those that arrived (dots), the lost ones
-/// (crosses), and with `π` its three colours, each with its count.
-fn measurement_legend(d: &SeriesData, arrived: RGBColor, name: &str) -> Vec<(Swatch, String)> {
+/// The legend of the measurement marks: each row of `y` drawn (its colour and name) for
+/// those that arrived (dots), the lost ones (crosses), and with `π` its three colours, each
+/// with its count.
+fn measurement_legend(d: &SeriesData, rows: &[(RGBColor, String)]) -> Vec<(Swatch, String)> {
     let Some(pi) = &d.arrival else {
-        return vec![
-            (Swatch::Dot(arrived), name.to_string()),
-            (Swatch::Cross(GREY), "y when lost (noise only)".into()),
-        ];
+        let mut legend: Vec<_> = rows
+            .iter()
+            .map(|(c, name)| (Swatch::Dot(*c), name.clone()))
+            .collect();
+        legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+        return legend;
     };
+    let names: Vec<&str> = rows.iter().map(|(_, name)| name.as_str()).collect();
     let count = |class: RGBColor| {
         (0..pi.len())
-            .filter(|&t| measurement_color(d, t, arrived) == class)
+            .filter(|&t| measurement_color(d, t, MEASURED) == class)
             .count()
     };
     vec![
         (
             Swatch::Dot(GREY),
-            format!("{name} (● arrived, × lost: noise only)"),
+            format!("{} (● arrived, × lost: noise only)", names.join(", ")),
         ),
         (
-            Swatch::Block(arrived),
-            format!("taken by the filter (π ≥ 0.9): {} steps", count(arrived)),
+            Swatch::Block(MEASURED),
+            format!("taken by the filter (π ≥ 0.9): {} steps", count(MEASURED)),
         ),
         (
             Swatch::Block(WEIGHED),
