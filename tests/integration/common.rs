@@ -270,6 +270,11 @@ pub struct Run {
 
 /// Simulates `model.steps` steps with the library's simulator.
 pub fn simulate_run(model: &sisfilt::model::Model, seed: u64) -> Run {
+    simulate_steps(model, model.steps, seed)
+}
+
+/// Simulates `steps` steps with the library's simulator.
+pub fn simulate_steps(model: &sisfilt::model::Model, steps: usize, seed: u64) -> Run {
     let mut run = Run {
         x: vec![],
         y: vec![],
@@ -277,7 +282,7 @@ pub fn simulate_run(model: &sisfilt::model::Model, seed: u64) -> Run {
         gamma: vec![],
     };
     let mut inputs = sisfilt::inputs::InputStream::open(model, None).unwrap();
-    sisfilt::simulate::simulate(model, model.steps, seed, &mut inputs, |s| {
+    sisfilt::simulate::simulate(model, steps, seed, &mut inputs, |s| {
         run.x.push(s.x.to_vec());
         run.y.push(s.y.to_vec());
         run.u.push(s.u.to_vec());

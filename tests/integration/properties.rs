@@ -1,40 +1,32 @@
-//! Numerical robustness of the distributed filter (issue 7): on random stable chains every
-//! reported covariance is finite, symmetric and positive semidefinite; `p = 1` is a textbook
-//! Kalman filter and `p = 0` the open-loop prediction (both written out here); a nearly
-//! singular `M` and states of size 1e±6 and 1e±150 work, and an overflow is an error naming
-//! `t` and `i`; a 10⁶-step run reaches the steady state of the filter's Riccati recursion and
-//! stays consistent (average NEES 1).
+//! Numerical robustness of the distributed filter (issue 7) and the joint filter: on random
+//! stable chains (proptest strategies over the dimensions, the matrices and the options, so
+//! that a failure shrinks to a small chain) every reported covariance is finite, symmetric and
+//! positive semidefinite, and the joint filter at full band is the centralized filter. For the
+//! distributed filter, `p = 1` is a textbook Kalman filter and `p = 0` the open-loop
+//! prediction (both written out here); a nearly singular `M` and states of size 1e±6 and
+//! 1e±150 work, and an overflow is an error naming `t` and `i`; a 10⁶-step run reaches the
+//! steady state of the filter's Riccati recursion and stays consistent (average NEES 1).
 #![allow(non_snake_case)]
 
 use std::path::PathBuf;
 
 use nalgebra::{DMatrix, SymmetricEigen};
 use proptest::prelude::*;
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use sisfilt::config::ConfigSource;
 use sisfilt::filter::{
-    ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepFilter, TwoStepOptions,
+    CentralizedFilter, ChainFilter, Dropouts, InterconnectFrom, JointFilter, JointOptions,
+    SecondMoment, TwoStepFilter, TwoStepOptions, Update,
 };
 use sisfilt::inputs::InputStream;
 use sisfilt::interconnect::SolverKind;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
 
+use crate::common::{Run, simulate_steps, toml_matrix};
+
 // ---------------------------------------------------------------------------------------------
 // Building configs and running the filter
 // ---------------------------------------------------------------------------------------------
-
-/// A matrix as a TOML list of rows (`{:?}` keeps every digit and a valid float form).
-fn toml_matrix(m: &DMatrix<f64>) -> String {
-    let rows: Vec<String> = (0..m.nrows())
-        .map(|r| {
-            let row: Vec<String> = (0..m.ncols()).map(|c| format!("{:?}", m[(r, c)])).collect();
-            format!("[{}]", row.join(", "))
-        })
-        .collect();
-    format!("[{}]", rows.join(", "))
-}
 
 fn toml_vector(v: &[f64]) -> String {
     let items: Vec<String> = v.iter().map(|x| format!("{x:?}")).collect();
@@ -106,33 +98,6 @@ impl Chain {
     }
 }
 
-/// One simulated run: per step `y(t, ·)`, `u(t, ·)`, `x(t, ·)` and `γ(t, ·)`.
-struct Run {
-    y: Vec<Vec<f64>>,
-    u: Vec<Vec<f64>>,
-    x: Vec<Vec<f64>>,
-    gamma: Vec<Vec<bool>>,
-}
-
-fn simulate_run(model: &Model, steps: usize, seed: u64) -> Run {
-    let mut inputs = InputStream::open(model, None).unwrap();
-    let mut run = Run {
-        y: Vec::new(),
-        u: Vec::new(),
-        x: Vec::new(),
-        gamma: Vec::new(),
-    };
-    simulate(model, steps, seed, &mut inputs, |s| {
-        run.y.push(s.y.to_vec());
-        run.u.push(s.u.to_vec());
-        run.x.push(s.x.to_vec());
-        run.gamma.push(s.gamma.to_vec());
-        Ok(())
-    })
-    .unwrap();
-    run
-}
-
 /// The measurements as the filter sees them: in the known-dropout mode a lost element is NaN.
 fn filter_input(model: &Model, run: &Run, t: usize, dropouts: Dropouts) -> Vec<f64> {
     let q = model.dims.q;
@@ -175,19 +140,29 @@ fn check_covariance(block: &[f64], n: usize, what: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// The filtered `(x̂, P)` of every step of a run.
+type Estimates = Vec<(Vec<f64>, Vec<f64>)>;
+
 /// Runs the two-step filter over a simulated run and checks every reported estimate and
-/// covariance (filtered and predicted). Returns the filtered `(x̂, P)` of every step.
-#[allow(clippy::type_complexity)]
-fn run_filter(
+/// covariance, as [`check_run`] does.
+fn run_filter(model: &Model, run: &Run, opts: TwoStepOptions) -> Result<Estimates, String> {
+    let mut filter = TwoStepFilter::new(model, opts).map_err(|e| format!("new: {e}"))?;
+    check_run(&mut filter, model, run, opts.dropouts)
+}
+
+/// Runs a filter over a simulated run and checks every reported estimate and covariance
+/// (filtered and predicted): finite, and every covariance block symmetric positive
+/// semidefinite. Returns the filtered `(x̂, P)` of every step.
+fn check_run(
+    filter: &mut dyn ChainFilter,
     model: &Model,
     run: &Run,
-    opts: TwoStepOptions,
-) -> Result<Vec<(Vec<f64>, Vec<f64>)>, String> {
+    dropouts: Dropouts,
+) -> Result<Estimates, String> {
     let (n, big_n) = (model.dims.n, model.subsystems);
-    let mut filter = TwoStepFilter::new(model, opts).map_err(|e| format!("new: {e}"))?;
     let mut out = Vec::with_capacity(run.y.len());
     for t in 0..run.y.len() {
-        let y = filter_input(model, run, t, opts.dropouts);
+        let y = filter_input(model, run, t, dropouts);
         filter
             .step(&y, &run.u[t])
             .map_err(|e| format!("t = {}: {e}", t + 1))?;
@@ -213,132 +188,252 @@ fn run_filter(
 }
 
 // ---------------------------------------------------------------------------------------------
-// Random stable chains
+// Random stable chains, as proptest strategies: a failing case shrinks towards fewer
+// subsystems, smaller states, lower ranks and the first option of each kind
 // ---------------------------------------------------------------------------------------------
 
-/// A `rows × cols` matrix of entries uniform in `[-a, a]`.
-fn uniform(rows: usize, cols: usize, a: f64, rng: &mut ChaCha8Rng) -> DMatrix<f64> {
-    DMatrix::from_fn(rows, cols, |_, _| rng.random_range(-a..=a))
+/// A `rows × cols` matrix of entries in `[-a, a]`.
+fn matrix(rows: usize, cols: usize, a: f64) -> impl Strategy<Value = DMatrix<f64>> {
+    prop::collection::vec(-a..=a, rows * cols).prop_map(move |v| DMatrix::from_vec(rows, cols, v))
 }
 
-/// A random chain from a seed: `N ≤ 6`, `n ≤ 3`, `q ≤ 2`, `plus, minus ≤ 1`, `A` scaled to a
-/// spectral radius below 0.95, weak coupling, `M` SPD, `Q` and `P0` PSD (possibly singular),
-/// `p` in `[0, 1]` with the ends included.
-fn random_chain(seed: u64) -> Chain {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let big_n = rng.random_range(1..=6usize);
-    let n = rng.random_range(1..=3usize);
-    let q = rng.random_range(1..=2usize);
-    let (plus, minus) = (rng.random_range(0..=1usize), rng.random_range(0..=1usize));
-    let s = plus + minus;
-    let mut A = uniform(n, n, 1.0, &mut rng);
-    let rho = A
-        .complex_eigenvalues()
-        .iter()
-        .map(|z| z.norm())
-        .fold(0.0, f64::max);
-    let target = rng.random_range(0.0..0.95);
-    if rho > 0.0 {
-        A *= target / rho;
-    }
-    let B = uniform(n, s, 0.3, &mut rng);
-    let D = uniform(s, n, 0.3, &mut rng);
-    let G = uniform(s, s, 0.2, &mut rng);
-    let J = uniform(q, n, 1.0, &mut rng);
-    let CHR = rng.random_bool(0.5).then(|| {
-        (
-            uniform(n, 1, 0.5, &mut rng),
-            uniform(s, 1, 0.2, &mut rng),
-            uniform(q, 1, 0.5, &mut rng),
-        )
-    });
-    let L = uniform(q, q, 1.0, &mut rng);
-    let M = &L * L.transpose() + DMatrix::identity(q, q) * rng.random_range(1e-3..1.0);
-    // Q and P0 of random rank (0..=n), so singular ones are covered too.
-    let psd = |rng: &mut ChaCha8Rng| {
-        let rank = rng.random_range(0..=n);
-        let K = uniform(n, rank, 0.5, rng);
-        &K * K.transpose()
-    };
-    let Q = psd(&mut rng);
-    let cov = psd(&mut rng) + DMatrix::identity(n, n) * rng.random_range(0.0..0.5);
-    let p = (0..big_n)
-        .map(|_| match rng.random_range(0..6) {
-            0 => 0.0,
-            1 => 1.0,
-            _ => rng.random_range(0.0..=1.0),
+/// `K Kᵀ` with `K` of `n` rows and `0..=n` columns: positive semidefinite, singular too.
+fn semidefinite(n: usize) -> impl Strategy<Value = DMatrix<f64>> {
+    (0..=n)
+        .prop_flat_map(move |rank| matrix(n, rank, 0.5))
+        .prop_map(|k| &k * k.transpose())
+}
+
+/// An arrival probability, one of the ends 0 and 1 a third of the time.
+fn arrival_probability() -> impl Strategy<Value = f64> {
+    prop_oneof![1 => Just(0.0), 1 => Just(1.0), 4 => 0.0..=1.0]
+}
+
+/// A random chain: `N ≤ 6`, `n ≤ 3`, `q ≤ 2`, `plus, minus ≤ 1`, `A` scaled to a spectral
+/// radius below 0.95, weak coupling, inputs or none, `M` SPD, `Q` and `P0` PSD of any rank
+/// (`P0` plus a multiple of `I` that may be 0), `p` in `[0, 1]` with the ends included.
+fn chain() -> impl Strategy<Value = Chain> {
+    (1..=6usize, 1..=3usize, 1..=2usize, 0..=1usize, 0..=1usize).prop_flat_map(
+        |(big_n, n, q, plus, minus)| {
+            let s = plus + minus;
+            (
+                (matrix(n, n, 1.0), 0.0..0.95f64),
+                matrix(n, s, 0.3),
+                matrix(s, n, 0.3),
+                matrix(s, s, 0.2),
+                matrix(q, n, 1.0),
+                proptest::option::of((matrix(n, 1, 0.5), matrix(s, 1, 0.2), matrix(q, 1, 0.5))),
+                (matrix(q, q, 1.0), 1e-3..1.0f64),
+                semidefinite(n),
+                (semidefinite(n), 0.0..0.5f64),
+                prop::collection::vec(arrival_probability(), big_n),
+                prop::collection::vec(-2.0..2.0f64, n),
+            )
+                .prop_map(
+                    move |(
+                        (mut A, radius),
+                        B,
+                        D,
+                        G,
+                        J,
+                        CHR,
+                        (L, m_floor),
+                        Q,
+                        (P0, p0_floor),
+                        p,
+                        mean,
+                    )| {
+                        let rho = A
+                            .complex_eigenvalues()
+                            .iter()
+                            .map(|z| z.norm())
+                            .fold(0.0, f64::max);
+                        if rho > 0.0 {
+                            A *= radius / rho;
+                        }
+                        Chain {
+                            subsystems: big_n,
+                            plus,
+                            minus,
+                            A,
+                            B,
+                            CHR,
+                            D,
+                            G,
+                            J,
+                            M: &L * L.transpose() + DMatrix::identity(q, q) * m_floor,
+                            Q,
+                            p,
+                            mean,
+                            cov: P0 + DMatrix::identity(n, n) * p0_floor,
+                        }
+                    },
+                )
+        },
+    )
+}
+
+/// The model of a chain whose lifted `A_eff` is stable (docs/theory.md §3); `None` otherwise.
+fn stable_model(chain: &Chain) -> Option<Model> {
+    let model = chain.model();
+    let rho = sisfilt::lifted::spectral_radius(&model, 1, 400).unwrap();
+    (rho.value < 0.99).then_some(model)
+}
+
+fn dropouts() -> impl Strategy<Value = Dropouts> {
+    prop_oneof![Just(Dropouts::Unknown), Just(Dropouts::Known)]
+}
+
+/// The update; the mixture update detects lost measurements, so it goes with unknown dropouts.
+fn dropouts_and_update() -> impl Strategy<Value = (Dropouts, Update)> {
+    (
+        dropouts(),
+        prop_oneof![Just(Update::Linear), Just(Update::Mixture)],
+    )
+        .prop_map(|(dropouts, update)| match dropouts {
+            Dropouts::Known => (dropouts, Update::Linear),
+            Dropouts::Unknown => (dropouts, update),
         })
-        .collect();
-    let mean = (0..n).map(|_| rng.random_range(-2.0..2.0)).collect();
-    Chain {
-        subsystems: big_n,
-        plus,
-        minus,
-        A,
-        B,
-        CHR,
-        D,
-        G,
-        J,
-        M,
-        Q,
-        p,
-        mean,
-        cov,
-    }
 }
 
-fn options(solver: u8, moment: u8, from: u8, known: bool) -> TwoStepOptions {
-    TwoStepOptions {
-        solver: if solver == 0 {
-            SolverKind::Banded
-        } else {
-            SolverKind::Transfer
-        },
-        second_moment: match moment {
-            0 => SecondMoment::Local,
-            1 => SecondMoment::Paper,
-            _ => SecondMoment::Lifted,
-        },
-        interconnect_from: if from == 0 {
-            InterconnectFrom::Filtered
-        } else {
-            InterconnectFrom::Predicted
-        },
-        dropouts: if known {
-            Dropouts::Known
-        } else {
-            Dropouts::Unknown
-        },
-        ..TwoStepOptions::default()
-    }
+/// Any combination of the distributed filter's options.
+fn two_step_options() -> impl Strategy<Value = TwoStepOptions> {
+    (
+        prop_oneof![Just(SolverKind::Banded), Just(SolverKind::Transfer)],
+        prop_oneof![
+            Just(SecondMoment::Local),
+            Just(SecondMoment::Paper),
+            Just(SecondMoment::Lifted)
+        ],
+        prop_oneof![
+            Just(InterconnectFrom::Filtered),
+            Just(InterconnectFrom::Predicted)
+        ],
+        dropouts_and_update(),
+    )
+        .prop_map(
+            |(solver, second_moment, interconnect_from, (dropouts, update))| TwoStepOptions {
+                solver,
+                second_moment,
+                interconnect_from,
+                dropouts,
+                update,
+            },
+        )
+}
+
+/// Any combination of the joint filter's options (docs/theory.md §8): band `k` from 0 to past
+/// `N − 1`, the `A_eff` band exact or cut, the default loading or a chosen one.
+fn joint_options() -> impl Strategy<Value = JointOptions> {
+    (
+        0..=6usize,
+        prop_oneof![Just(1e-12), Just(0.0), Just(1e-3)],
+        prop_oneof![Just(None), Just(Some(1e-6))],
+        prop_oneof![
+            Just(SecondMoment::Band),
+            Just(SecondMoment::Lifted),
+            Just(SecondMoment::Local)
+        ],
+        dropouts_and_update(),
+    )
+        .prop_map(
+            |(band, band_tol, loading, second_moment, (dropouts, update))| JointOptions {
+                band,
+                band_tol,
+                loading,
+                second_moment,
+                dropouts,
+                update,
+            },
+        )
 }
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
 
-    /// On a random stable chain, with any combination of the filter's options, every reported
-    /// covariance is finite, symmetric and positive semidefinite, and every estimate finite.
+    /// On a random stable chain, with any combination of the distributed filter's options,
+    /// every reported covariance is finite, symmetric and positive semidefinite, and every
+    /// estimate finite.
     #[test]
     fn covariances_stay_symmetric_psd_and_finite(
-        chain_seed in any::<u64>(),
-        run_seed in any::<u64>(),
+        chain in chain(),
+        opts in two_step_options(),
         steps in 1usize..60,
-        solver in 0u8..2,
-        moment in 0u8..3,
-        from in 0u8..2,
-        known in any::<bool>(),
+        run_seed in any::<u64>(),
     ) {
-        let chain = random_chain(chain_seed);
-        let model = chain.model();
-        let rho = sisfilt::lifted::spectral_radius(&model, 1, 400).unwrap();
-        prop_assume!(rho.value < 0.99, "A_eff not stable: {}", rho.value);
-        let opts = options(solver, moment, from, known);
+        let model = stable_model(&chain);
+        prop_assume!(model.is_some(), "A_eff not stable");
+        let model = model.unwrap();
         // The transfer solver may refuse a chain whose G22 is singular; that is not the point.
         prop_assume!(TwoStepFilter::new(&model, opts).is_ok());
-        let run = simulate_run(&model, steps, run_seed);
+        let run = simulate_steps(&model, steps, run_seed);
         if let Err(e) = run_filter(&model, &run, opts) {
             prop_assert!(false, "{e}\nconfig:\n{}", chain.toml());
+        }
+    }
+
+    /// The same for the joint band-k filter (docs/theory.md §8), with any of its options.
+    #[test]
+    fn joint_covariances_stay_symmetric_psd_and_finite(
+        chain in chain(),
+        opts in joint_options(),
+        steps in 1usize..40,
+        run_seed in any::<u64>(),
+    ) {
+        let model = stable_model(&chain);
+        prop_assume!(model.is_some(), "A_eff not stable");
+        let model = model.unwrap();
+        let run = simulate_steps(&model, steps, run_seed);
+        let result = JointFilter::new(&model, opts)
+            .map_err(|e| format!("new: {e}"))
+            .and_then(|mut f| check_run(&mut f, &model, &run, opts.dropouts));
+        if let Err(e) = result {
+            prop_assert!(false, "{opts:?}: {e}\nconfig:\n{}", chain.toml());
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, .. ProptestConfig::default() })]
+
+    /// At full band, with the exact `A_eff` and no loading, the joint filter is the centralized
+    /// filter of docs/theory.md §7 (a dense lifted filter in covariance form) on a random
+    /// stable chain, to 1e−8 of the values' size, in both dropout modes and with the mixture
+    /// update. `Q` and `P0` get a floor of `0.01 I` here: the information form needs them
+    /// invertible when there is no loading.
+    #[test]
+    fn joint_filter_at_full_band_is_the_centralized_filter(
+        chain in chain(),
+        (dropouts, update) in dropouts_and_update(),
+        steps in 1usize..30,
+        run_seed in any::<u64>(),
+    ) {
+        let mut chain = chain;
+        let n = chain.A.nrows();
+        chain.Q += DMatrix::identity(n, n) * 0.01;
+        chain.cov += DMatrix::identity(n, n) * 0.01;
+        let model = stable_model(&chain);
+        prop_assume!(model.is_some(), "A_eff not stable");
+        let model = model.unwrap();
+        let run = simulate_steps(&model, steps, run_seed);
+        let opts = JointOptions {
+            loading: Some(0.0),
+            update,
+            ..JointOptions::full_band(&model, SecondMoment::Band, dropouts)
+        };
+        let mut joint = JointFilter::new(&model, opts).unwrap();
+        let known = dropouts == Dropouts::Known;
+        let mut centralized = CentralizedFilter::new(&model, known, 1000).unwrap();
+        if update == Update::Mixture {
+            centralized = centralized.with_mixture_update().unwrap();
+        }
+        let joint = check_run(&mut joint, &model, &run, dropouts);
+        let centralized = check_run(&mut centralized, &model, &run, dropouts);
+        let (joint, centralized) = (joint.unwrap(), centralized.unwrap());
+        for (t, ((x, p), (x_ref, p_ref))) in joint.iter().zip(&centralized).enumerate() {
+            let what = format!("{opts:?}, t = {}\nconfig:\n{}", t + 1, chain.toml());
+            prop_assert!(relative_gap(x, x_ref) <= 1e-8, "x̂: {x:?} vs {x_ref:?}, {what}");
+            prop_assert!(relative_gap(p, p_ref) <= 1e-8, "P: {p:?} vs {p_ref:?}, {what}");
         }
     }
 }
@@ -368,13 +463,24 @@ fn coupled_chain(p: f64) -> Chain {
     }
 }
 
+/// Every combination of the distributed filter's options with the linear update.
 fn every_option() -> Vec<TwoStepOptions> {
     let mut out = Vec::new();
-    for solver in 0..2 {
-        for moment in 0..3 {
-            for from in 0..2 {
-                for known in [false, true] {
-                    out.push(options(solver, moment, from, known));
+    for solver in [SolverKind::Banded, SolverKind::Transfer] {
+        for second_moment in [
+            SecondMoment::Local,
+            SecondMoment::Paper,
+            SecondMoment::Lifted,
+        ] {
+            for interconnect_from in [InterconnectFrom::Filtered, InterconnectFrom::Predicted] {
+                for dropouts in [Dropouts::Unknown, Dropouts::Known] {
+                    out.push(TwoStepOptions {
+                        solver,
+                        second_moment,
+                        interconnect_from,
+                        dropouts,
+                        ..TwoStepOptions::default()
+                    });
                 }
             }
         }
@@ -392,14 +498,18 @@ fn cov_block(p: &[f64], i: usize, n: usize) -> DMatrix<f64> {
     DMatrix::from_column_slice(n, n, &p[i * n * n..(i + 1) * n * n])
 }
 
-fn assert_close(a: &[f64], b: &[f64], tol: f64, what: &str) {
+/// The largest difference between `a` and `b`, relative to the largest `|b|` (at least 1).
+fn relative_gap(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
     let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-    for (k, (x, y)) in a.iter().zip(b).enumerate() {
-        assert!(
-            (x - y).abs() <= tol * scale,
-            "{what}[{k}]: {x} vs {y} (scale {scale:e})"
-        );
-    }
+    a.iter()
+        .zip(b)
+        .fold(0.0, |m, (x, y)| m.max((x - y).abs() / scale))
+}
+
+fn assert_close(a: &[f64], b: &[f64], tol: f64, what: &str) {
+    let gap = relative_gap(a, b);
+    assert!(gap <= tol, "{what}: relative gap {gap:e}\n{a:?}\nvs\n{b:?}");
 }
 
 /// `p = 1`: nothing is ever lost, `R_eff = M`, and the two-step filter is a textbook Kalman
@@ -411,7 +521,7 @@ fn assert_close(a: &[f64], b: &[f64], tol: f64, what: &str) {
 fn p_1_is_a_textbook_kalman_filter() {
     let chain = coupled_chain(1.0);
     let model = chain.model();
-    let run = simulate_run(&model, 150, 11);
+    let run = simulate_steps(&model, 150, 11);
     assert!(run.gamma.iter().flatten().all(|&g| g));
     let (n, big_n) = (2, chain.subsystems);
     let g = vec![chain.G.clone(); big_n];
@@ -467,7 +577,7 @@ fn p_1_is_a_textbook_kalman_filter() {
 fn p_0_ignores_the_measurements_and_is_the_open_loop_prediction() {
     let chain = coupled_chain(0.0);
     let model = chain.model();
-    let run = simulate_run(&model, 120, 11);
+    let run = simulate_steps(&model, 120, 11);
     assert!(run.gamma.iter().flatten().all(|&g| !g));
     let (n, big_n) = (2, chain.subsystems);
     let sub = crate::common::Sub {
@@ -530,7 +640,7 @@ fn nearly_singular_measurement_noise_works() {
     chain.J = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.3, 1.0]);
     chain.M = (&M + M.transpose()) * 0.5;
     let model = chain.model();
-    let run = simulate_run(&model, 200, 5);
+    let run = simulate_steps(&model, 200, 5);
     for opts in every_option() {
         run_filter(&model, &run, opts).unwrap_or_else(|e| panic!("{opts:?}: {e}"));
     }
@@ -544,7 +654,7 @@ fn nearly_singular_measurement_noise_works() {
 fn states_from_1e_150_to_1e150_work_and_scale() {
     let base = coupled_chain(0.8);
     let model = base.model();
-    let run = simulate_run(&model, 200, 9);
+    let run = simulate_steps(&model, 200, 9);
     let reference = run_filter(&model, &run, TwoStepOptions::default()).unwrap();
     for k in [1e6, 1e-6, 1e150, 1e-150] {
         let mut chain = base.clone();
@@ -714,7 +824,7 @@ fn an_overflowing_covariance_is_an_error_naming_t_and_i() {
     chain.cov = DMatrix::from_row_slice(2, 2, &[1.0, 0.0, 0.0, 1.7e308]);
     chain.J = DMatrix::from_row_slice(1, 2, &[1.0, 0.0]); // x₂ unobserved: P₂₂ stays huge
     let model = chain.model();
-    let run = simulate_run(&model, 1, 3);
+    let run = simulate_steps(&model, 1, 3);
     for opts in every_option() {
         let Ok(mut filter) = sisfilt::filter::two_step(&model, opts) else {
             continue;
@@ -746,7 +856,7 @@ fn transfer_solver_handles_one_way_chains() {
         chain.D = DMatrix::from_element(s, 2, 0.3);
         chain.G = DMatrix::identity(s, s) * 0.2;
         let model = chain.model();
-        let run = simulate_run(&model, 30, 1);
+        let run = simulate_steps(&model, 30, 1);
         let banded = run_filter(&model, &run, TwoStepOptions::default()).unwrap();
         let opts = TwoStepOptions {
             solver: SolverKind::Transfer,
