@@ -423,9 +423,11 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
             }
         }
         let sharing = Sharing::of(model, &opts);
-        let per_subsystem_moment = !sharing.moment
-            && opts.dropouts == Dropouts::Unknown
-            && opts.second_moment != SecondMoment::Lifted;
+        // Only Nahi's update with unknown dropouts reads the second moment (docs/theory.md §4).
+        let uses_second_moment =
+            opts.dropouts == Dropouts::Unknown && opts.update == Update::Linear;
+        let per_subsystem_moment =
+            uses_second_moment && !sharing.moment && opts.second_moment != SecondMoment::Lifted;
         let moment_cov = if per_subsystem_moment {
             moment_one
                 .iter()
@@ -438,7 +440,7 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         };
         let solver = Interconnect::new(opts.solver, model, 1)?;
         let solver_error = solver.error_estimate();
-        let lifted = if opts.second_moment == SecondMoment::Lifted {
+        let lifted = if uses_second_moment && opts.second_moment == SecondMoment::Lifted {
             Some((LiftedSystem::new(model, 1)?, LiftedMoments::initial(model)))
         } else {
             None
