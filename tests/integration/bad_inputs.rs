@@ -249,7 +249,7 @@ fn catalogue_is_well_formed() {
 #[test]
 fn estimate_into_a_pipe_closed_early_exits_0_quietly() {
     let tmp = tempfile::tempdir().unwrap();
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/heat_rod.toml");
+    let config = crate::common::shipped_config("heat_rod.toml");
     let rod = tmp.path().join("rod");
     sisfilt()
         .arg("simulate")
@@ -330,7 +330,7 @@ fn assert_quiet_success(what: &str, output: &std::process::Output) {
 /// still writes its `--out` file.
 #[test]
 fn check_and_evaluate_into_a_closed_pipe_exit_0_quietly() {
-    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let configs = crate::common::configs_dir();
     let tmp = tempfile::tempdir().unwrap();
     let json = tmp.path().join("eval.json");
     let (rod, paper) = (configs.join("heat_rod.toml"), configs.join("paper.toml"));
@@ -361,7 +361,7 @@ fn check_and_evaluate_into_a_closed_pipe_exit_0_quietly() {
 #[test]
 fn estimate_with_a_closed_standard_error_still_writes_its_output() {
     let tmp = tempfile::tempdir().unwrap();
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/paper.toml");
+    let config = crate::common::shipped_config("paper.toml");
     let run = tmp.path().join("run");
     sisfilt()
         .arg("simulate")

@@ -15,9 +15,21 @@ pub fn sisfilt() -> Command {
     cmd
 }
 
-/// Folder of the configs shipped with the crate.
+/// The folder of the configs shipped with the crate.
+pub fn configs_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
+}
+
+/// A config shipped in `configs/`.
+pub fn shipped_config(name: &str) -> PathBuf {
+    let path = configs_dir().join(name);
+    assert!(path.is_file(), "{} is missing", path.display());
+    path
+}
+
+/// Every config shipped in `configs/`, in name order.
 pub fn shipped_configs() -> Vec<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let dir = configs_dir();
     let mut out: Vec<PathBuf> = std::fs::read_dir(&dir)
         .expect("configs/ exists")
         .map(|e| e.unwrap().path())
@@ -253,9 +265,7 @@ pub fn model_from(text: &str) -> sisfilt::model::Model {
 
 /// A shipped config of `configs/`, validated.
 pub fn shipped_model(name: &str) -> sisfilt::model::Model {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("configs")
-        .join(name);
+    let path = shipped_config(name);
     sisfilt::model::Model::from_config(&sisfilt::config::ConfigSource::from_file(&path).unwrap())
         .unwrap()
 }

@@ -2,8 +2,7 @@
 //! JSON form, the shortest workflow through `run.json`, determinism, bad measurement files,
 //! atomic output, known dropouts, `--paper`, `--solver transfer`, `--predicted` and piping.
 //!
-//! Self-contained: every helper lives in this file, and every test works in its own temporary
-//! folder.
+//! Every test works in its own temporary folder.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -12,37 +11,9 @@ use assert_cmd::Command;
 use sha2::Digest;
 use tempfile::TempDir;
 
+use crate::common::{shipped_config, shipped_configs, sisfilt};
+
 // ------------------------------------------------------------------------------ helpers
-
-/// The `sisfilt` binary of this crate, without a backtrace setting from the environment.
-fn sisfilt() -> Command {
-    let mut cmd = Command::cargo_bin("sisfilt").expect("the sisfilt binary");
-    cmd.env_remove("RUST_BACKTRACE");
-    cmd
-}
-
-fn configs_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
-}
-
-/// A config shipped in `configs/`.
-fn shipped(name: &str) -> PathBuf {
-    let p = configs_dir().join(name);
-    assert!(p.is_file(), "{} is missing", p.display());
-    p
-}
-
-/// Every config shipped in `configs/`.
-fn shipped_configs() -> Vec<PathBuf> {
-    let mut out: Vec<PathBuf> = std::fs::read_dir(configs_dir())
-        .expect("configs/ exists")
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
-        .collect();
-    out.sort();
-    assert!(!out.is_empty(), "no configs shipped");
-    out
-}
 
 fn tmp() -> TempDir {
     tempfile::tempdir().expect("a temporary folder")
@@ -524,7 +495,7 @@ fn round_trip_on_every_shipped_config() {
 fn config_and_inputs_come_from_run_json() {
     // platoon has inputs (inputs.csv is written), paper has none.
     for name in ["platoon.toml", "paper.toml"] {
-        let config = shipped(name);
+        let config = shipped_config(name);
         let dir = tmp();
         let run = dir.path().join("data");
         simulate(&config, &run, &[]);
@@ -563,7 +534,7 @@ fn config_and_inputs_come_from_run_json() {
 fn without_run_json_config_is_required() {
     let dir = tmp();
     let run = dir.path().join("run");
-    simulate(&shipped("platoon.toml"), &run, &[]);
+    simulate(&shipped_config("platoon.toml"), &run, &[]);
     let lone = dir.path().join("lone");
     std::fs::create_dir(&lone).unwrap();
     std::fs::copy(run.join("measurements.csv"), lone.join("measurements.csv")).unwrap();
@@ -603,7 +574,7 @@ fn without_run_json_config_is_required() {
 
 #[test]
 fn json_output_carries_the_csv_numbers_and_metadata() {
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     let run = dir.path().join("run");
     simulate(&config, &run, &[]);
@@ -706,7 +677,7 @@ fn json_output_carries_the_csv_numbers_and_metadata() {
 
 #[test]
 fn json_from_run_json_hashes_the_same_config() {
-    let config = shipped("paper.toml");
+    let config = shipped_config("paper.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let out = ok(sisfilt().current_dir(dir.path()).args([
@@ -727,7 +698,7 @@ fn json_from_run_json_hashes_the_same_config() {
 
 #[test]
 fn two_runs_give_identical_output() {
-    let config = shipped("heat_rod.toml");
+    let config = shipped_config("heat_rod.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -765,7 +736,7 @@ struct BadFileSetup {
 impl BadFileSetup {
     fn new() -> Self {
         let dir = tmp();
-        let config = shipped("platoon.toml");
+        let config = shipped_config("platoon.toml");
         simulate(&config, &dir.path().join("run"), &[]);
         let lines = text(&read(&dir.path().join("run").join("measurements.csv")))
             .lines()
@@ -1026,7 +997,7 @@ fn failed_run_keeps_the_old_output_file() {
 
 #[test]
 fn known_dropouts_read_marked_measurements() {
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &["--mark-missing"]);
     let meas = dir.path().join("measurements.csv");
@@ -1074,7 +1045,7 @@ fn known_dropouts_read_marked_measurements() {
 
 #[test]
 fn paper_preset_runs_and_differs_from_default() {
-    let config = shipped("paper.toml");
+    let config = shipped_config("paper.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -1157,7 +1128,7 @@ fn transfer_solver_matches_banded_where_it_is_accurate() {
     // paper.toml (N = 6), and platoon with an invertible G22 (its own G is 0, on which the
     // transfer recursion is undefined).
     let platoon_g22 = dir.path().join("platoon_g22.toml");
-    let platoon = text(&read(&shipped("platoon.toml")));
+    let platoon = text(&read(&shipped_config("platoon.toml")));
     assert!(platoon.contains("\nG = [[0.0, 0.0], [0.0, 0.0]]\n"));
     write(
         &platoon_g22,
@@ -1166,7 +1137,7 @@ fn transfer_solver_matches_banded_where_it_is_accurate() {
             "\nG = [[0.0, 0.0], [0.0, 0.8]]\n",
         ),
     );
-    for config in [shipped("paper.toml"), platoon_g22] {
+    for config in [shipped_config("paper.toml"), platoon_g22] {
         let run = dir
             .path()
             .join(config.file_stem().unwrap().to_string_lossy().into_owned());
@@ -1193,7 +1164,7 @@ fn transfer_solver_matches_banded_where_it_is_accurate() {
 fn transfer_solver_rejects_singular_g22_on_platoon() {
     // platoon.toml has G = 0: every interior G22 is singular, which the transfer solver
     // cannot handle (docs/theory.md §2); that is bad input, and the message points to banded.
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let out = fails(
@@ -1212,7 +1183,7 @@ fn transfer_solver_rejects_singular_g22_on_platoon() {
 
 #[test]
 fn predicted_output() {
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -1275,7 +1246,7 @@ fn predicted_output() {
 
 #[test]
 fn measurements_from_standard_input() {
-    let config = shipped("heat_rod.toml");
+    let config = shipped_config("heat_rod.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -1462,7 +1433,7 @@ fn mixture_update_agrees_across_filters_on_one_subsystem() {
 /// `--update mixture` with `--dropouts known` is bad input: there is nothing to detect.
 #[test]
 fn mixture_update_refuses_known_dropouts() {
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -1483,7 +1454,7 @@ fn mixture_update_refuses_known_dropouts() {
 /// detection figures, and has a lower RMSE than the filter.
 #[test]
 fn mixture_update_smooths() {
-    let config = shipped("heat_rod.toml");
+    let config = shipped_config("heat_rod.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &[]);
     let meas = dir.path().join("measurements.csv");
@@ -1529,7 +1500,7 @@ fn mixture_update_smooths() {
 /// filter's (exact) value.
 #[test]
 fn known_dropout_log_likelihood_is_reported() {
-    let config = shipped("platoon.toml");
+    let config = shipped_config("platoon.toml");
     let dir = tmp();
     simulate(&config, dir.path(), &["--mark-missing"]);
     let meas = dir.path().join("measurements.csv");

@@ -201,7 +201,7 @@ fn covariance_ratios(text: &str) -> [f64; 2] {
 }
 
 fn platoon_text() -> String {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/platoon.toml");
+    let path = crate::common::shipped_config("platoon.toml");
     std::fs::read_to_string(path).unwrap()
 }
 

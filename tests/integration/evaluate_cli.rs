@@ -1,11 +1,7 @@
 //! `sisfilt evaluate` from the command line: the table, the JSON, and independence of the
 //! thread count.
 
-use assert_cmd::Command;
-
-fn configs() -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs")
-}
+use crate::common::{shipped_config, sisfilt};
 
 /// Removes every key whose name contains `time` (the only clock readings, docs/theory.md §13).
 fn strip_times(v: &mut serde_json::Value) {
@@ -21,11 +17,10 @@ fn strip_times(v: &mut serde_json::Value) {
 
 fn evaluate_json(threads: &str, dir: &std::path::Path) -> serde_json::Value {
     let out = dir.join(format!("eval{threads}.json"));
-    Command::cargo_bin("sisfilt")
-        .unwrap()
+    sisfilt()
         .env("RAYON_NUM_THREADS", threads)
         .arg("evaluate")
-        .arg(configs().join("paper.toml"))
+        .arg(shipped_config("paper.toml"))
         .args(["--runs", "12", "--seed", "5", "--out"])
         .arg(&out)
         .assert()
@@ -82,10 +77,9 @@ fn same_results_with_one_and_two_threads() {
 fn smooth_adds_the_smoother_rows() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("eval.json");
-    Command::cargo_bin("sisfilt")
-        .unwrap()
+    sisfilt()
         .arg("evaluate")
-        .arg(configs().join("paper.toml"))
+        .arg(shipped_config("paper.toml"))
         .args(["--runs", "4", "--smooth", "--out"])
         .arg(&out)
         .assert()
@@ -109,10 +103,9 @@ fn smooth_adds_the_smoother_rows() {
 
 #[test]
 fn table_lists_filters_and_notes_skipped_ones() {
-    let out = Command::cargo_bin("sisfilt")
-        .unwrap()
+    let out = sisfilt()
         .arg("evaluate")
-        .arg(configs().join("platoon.toml"))
+        .arg(shipped_config("platoon.toml"))
         .args(["--runs", "3"])
         .assert()
         .success();
@@ -136,10 +129,9 @@ fn table_lists_filters_and_notes_skipped_ones() {
     assert!(stdout.contains("note: distributed-paper"), "{stdout}");
 
     // Above the size limit the centralized filters are skipped, with a note.
-    let out = Command::cargo_bin("sisfilt")
-        .unwrap()
+    let out = sisfilt()
         .arg("evaluate")
-        .arg(configs().join("platoon.toml"))
+        .arg(shipped_config("platoon.toml"))
         .args(["--runs", "2", "--max-lifted", "10"])
         .assert()
         .success();
@@ -166,8 +158,7 @@ fn smoother_fallback_is_announced() {
     )
     .unwrap();
     let out = dir.path().join("eval.json");
-    let run = Command::cargo_bin("sisfilt")
-        .unwrap()
+    let run = sisfilt()
         .arg("evaluate")
         .arg(&config)
         .args(["--runs", "20", "--smooth", "--out"])
@@ -201,7 +192,7 @@ fn smoother_fallback_is_announced() {
 #[test]
 fn a_filter_that_breaks_down_is_named_with_its_run_and_writes_no_figures() {
     let dir = tempfile::tempdir().unwrap();
-    let rod = std::fs::read_to_string(configs().join("heat_rod.toml")).unwrap();
+    let rod = std::fs::read_to_string(shipped_config("heat_rod.toml")).unwrap();
     let long_rod: String = rod
         .lines()
         .map(|l| match l.split_once(" = ").map(|(k, _)| k) {
@@ -214,8 +205,7 @@ fn a_filter_that_breaks_down_is_named_with_its_run_and_writes_no_figures() {
     let config = dir.path().join("long_rod.toml");
     std::fs::write(&config, long_rod).unwrap();
     let out = dir.path().join("eval.json");
-    let run = Command::cargo_bin("sisfilt")
-        .unwrap()
+    let run = sisfilt()
         .arg("evaluate")
         .arg(&config)
         .args([
@@ -265,10 +255,9 @@ fn the_json_reads_back_into_the_library_types_without_loss() {
     let dir = tempfile::tempdir().unwrap();
     let run = |config: &str, extra: &[&str], name: &str| -> (String, serde_json::Value) {
         let out = dir.path().join(name);
-        Command::cargo_bin("sisfilt")
-            .unwrap()
+        sisfilt()
             .arg("evaluate")
-            .arg(configs().join(config))
+            .arg(shipped_config(config))
             .args(["--runs", "2", "--smooth", "--out"])
             .arg(&out)
             .args(extra)
@@ -314,10 +303,9 @@ fn true_p_simulates_another_arrival_probability_and_mixture_rows_score_detection
     let dir = tempfile::tempdir().unwrap();
     let run = |extra: &[&str]| -> (String, serde_json::Value) {
         let out = dir.path().join("eval.json");
-        let assert = Command::cargo_bin("sisfilt")
-            .unwrap()
+        let assert = sisfilt()
             .arg("evaluate")
-            .arg(configs().join("platoon.toml"))
+            .arg(shipped_config("platoon.toml"))
             .args([
                 "--runs",
                 "3",

@@ -398,7 +398,7 @@ fn scheduled_joint_filter_equals_joint_filter() {
 #[test]
 fn joint_filter_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
-    let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/paper.toml");
+    let config = crate::common::shipped_config("paper.toml");
     crate::common::sisfilt()
         .arg("simulate")
         .arg(&config)

@@ -6,13 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use crate::common::{Csv, one_error_line, sisfilt};
-
-fn config(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("configs")
-        .join(name)
-}
+use crate::common::{Csv, one_error_line, shipped_config, sisfilt};
 
 /// Runs `sisfilt` with `args` in `dir` and asserts success.
 fn run_ok(dir: &Path, args: &[&str]) -> assert_cmd::assert::Assert {
@@ -29,7 +23,7 @@ fn fixture() -> &'static Path {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         for (name, out) in [("platoon.toml", "platoon"), ("paper.toml", "paper")] {
-            let cfg = config(name);
+            let cfg = shipped_config(name);
             let cfg = cfg.to_str().unwrap();
             run_ok(&dir, &["simulate", cfg, "--out", out]);
             let meas = format!("{out}/measurements.csv");
@@ -624,7 +618,7 @@ fn evaluate_plot_draws_nees_per_step_when_the_json_has_it() {
 #[test]
 fn sweep_p_replaces_p_everywhere_and_plots_curves() {
     let dir = fixture();
-    let cfg = config("paper.toml");
+    let cfg = shipped_config("paper.toml");
     let cfg = cfg.to_str().unwrap();
     let out = run_ok(
         dir,
@@ -937,7 +931,11 @@ fn quiet_drops_warnings_and_verbose_adds_info_lines() {
     // The flags are global: after the command too. Both together are a usage error.
     sisfilt()
         .current_dir(dir)
-        .args(["check", config("paper.toml").to_str().unwrap(), "-q"])
+        .args([
+            "check",
+            shipped_config("paper.toml").to_str().unwrap(),
+            "-q",
+        ])
         .assert()
         .success();
     let out = sisfilt()

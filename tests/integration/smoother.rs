@@ -562,7 +562,7 @@ fn joint_smoother_matches_the_optimal_smoother_in_monte_carlo() {
 #[test]
 fn smoothing_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
-    let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/platoon.toml");
+    let config = crate::common::shipped_config("platoon.toml");
     crate::common::sisfilt()
         .arg("simulate")
         .arg(&config)
