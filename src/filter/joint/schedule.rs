@@ -11,7 +11,7 @@ use crate::model::Model;
 
 /// One step of a [`JointSchedule`].
 struct ScheduledStep {
-    /// The Cholesky factor of `Λ⁺(t)`.
+    /// The Cholesky factor of `Λ⁺(t)`, as much of it as solves need.
     chol: BandCholesky,
     /// Every subsystem's `R_i⁻¹ H_i` (`q × n`, column-major), so that `r_i = (R_i⁻¹ H_i)ᵀ ỹ_i`.
     gains: Vec<f64>,
@@ -32,8 +32,8 @@ impl<'m> JointSchedule<'m> {
     /// Bytes a schedule of `steps` steps needs with band `k`.
     pub fn bytes(model: &Model, k: usize, steps: usize) -> usize {
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
-        let k = k.min(big_n - 1);
-        steps * 8 * big_n * (2 * (k + 1) * n * n + q * n + 2 * n * n)
+        let per_step = BandCholesky::solve_only_len(big_n, n, k) + big_n * (q * n + 2 * n * n);
+        steps * size_of::<f64>() * per_step
     }
 
     /// Runs the covariance pass for the inputs `u[t]` (`N·m` values per step).
@@ -54,7 +54,7 @@ impl<'m> JointSchedule<'m> {
         for ut in u {
             filter.step(&y, ut)?;
             steps.push(ScheduledStep {
-                chol: filter.chol.clone(),
+                chol: filter.chol.clone_for_solves(),
                 gains: filter.recorded_gains.clone().expect("recording"),
                 block_filt: filter.block_filt.clone(),
                 block_pred: filter.block_pred.clone(),
@@ -137,5 +137,45 @@ impl ChainFilter for ScheduledJoint<'_, '_> {
 
     fn predicted(&self) -> (&[f64], &[f64]) {
         (&self.x_pred, &self.sched.steps[self.t - 2].block_pred)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    /// [`JointSchedule::bytes`], which `evaluate` weighs before building a schedule, is what
+    /// a schedule holds: at a narrow band, and at `k = 32`, where each row of the factor gets
+    /// a block of padding (`k n² · 8` bytes is a multiple of 1 KiB).
+    #[test]
+    fn bytes_are_what_the_schedule_holds() {
+        let text = "subsystems = 40\nsteps = 3\n[interconnection]\nplus = 1\nminus = 1\n\
+                    [model]\nA = [[0.9, 0.1], [0.0, 0.8]]\nB = [[0.1, 0.0], [0.0, 0.1]]\n\
+                    D = [[0.3, 0.0], [0.0, 0.3]]\nG = [[0.1, 0.0], [0.0, 0.1]]\n\
+                    J = [[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]\nM = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]]\n\
+                    Q = [[0.01, 0.0], [0.0, 0.01]]\n[dropout]\np = 0.8\n\
+                    [initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n";
+        let model = Model::from_toml_str("s.toml", Path::new("."), text).unwrap();
+        let u = vec![Vec::new(); model.steps];
+        for band in [1, 32] {
+            let opts = JointOptions {
+                band,
+                ..JointOptions::default()
+            };
+            let sched = JointSchedule::new(&model, opts, &u).unwrap();
+            let held: usize = sched
+                .steps
+                .iter()
+                .map(|s| {
+                    s.chol.len_held() + s.gains.len() + s.block_filt.len() + s.block_pred.len()
+                })
+                .sum();
+            assert_eq!(
+                held * size_of::<f64>(),
+                JointSchedule::bytes(&model, band, model.steps),
+                "band {band}"
+            );
+        }
     }
 }

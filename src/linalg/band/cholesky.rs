@@ -51,6 +51,28 @@ impl BandCholesky {
         }
     }
 
+    /// The numbers a [`clone_for_solves`](Self::clone_for_solves) of a factor with `nb`
+    /// blocks of size `bs` and bandwidth `k` (clamped to `nb − 1`) keeps.
+    pub fn solve_only_len(nb: usize, bs: usize, k: usize) -> usize {
+        let (k, bb) = (k.min(nb.saturating_sub(1)), bs * bs);
+        nb * (padded_len(k + 1, bb) + bb)
+    }
+
+    /// The numbers this factor holds, its workspaces included.
+    pub fn len_held(&self) -> usize {
+        [
+            &self.l,
+            &self.l_diag_inv,
+            &self.pivot_inv,
+            &self.et,
+            &self.tmp,
+            &self.rows,
+        ]
+        .iter()
+        .map(|v| v.len())
+        .sum()
+    }
+
     /// Number of block rows.
     pub fn nb(&self) -> usize {
         self.nb
