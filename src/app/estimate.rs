@@ -65,7 +65,8 @@ pub struct EstimateArgs {
     #[arg(long, value_parser = choice::<SolverKind>())]
     pub solver: Option<SolverKind>,
     /// Second moment S = E[x xᵀ] in the Nahi filter [default: local; paper with --paper;
-    /// band for --filter joint]. No effect with --update mixture, which needs none.
+    /// band for --filter joint]. No effect with --dropouts known or --update mixture,
+    /// which need none.
     #[arg(long, value_parser = choice::<SecondMoment>())]
     pub second_moment: Option<SecondMoment>,
     /// Estimate fed to step 1 [default: filtered; predicted with --paper].
