@@ -304,13 +304,31 @@ struct Scores {
     per_step: StepNees,
     /// Filled by the mixture rows only.
     detection: Detection,
+    /// The runs whose smoother left a note (e.g. it reran with a larger loading), and the
+    /// first of those notes.
+    noted_runs: usize,
+    first_note: Option<String>,
 }
 
 impl Scores {
+    fn new(model: &Model) -> Self {
+        Self {
+            accuracy: Accuracy::new(model.dims.n),
+            per_step: StepNees::new(model.steps),
+            detection: Detection::default(),
+            noted_runs: 0,
+            first_note: None,
+        }
+    }
+
     fn merge(&mut self, other: &Scores) {
         self.accuracy.merge(&other.accuracy);
         self.per_step.merge(&other.per_step);
         self.detection.merge(&other.detection);
+        self.noted_runs += other.noted_runs;
+        if self.first_note.is_none() {
+            self.first_note.clone_from(&other.first_note);
+        }
     }
 }
 
@@ -345,6 +363,7 @@ fn run_filters(
             let mut acc = Accuracy::new(n);
             let mut per_step = StepNees::new(model.steps);
             let mut detection = Detection::default();
+            let mut first_note = None;
             let mut score =
                 |t: usize, x_hat: &[f64], p_hat: &[f64], arrival: Option<&[f64]>| -> Result<()> {
                     check_estimates(t + 1, n, x_hat, p_hat)?;
@@ -371,7 +390,7 @@ fn run_filters(
             if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
                 // The filter's means, then the stored backward gains (docs/theory.md §9).
                 let mut f = match schedule.forward {
-                    Some(joint) => Box::new(JointFilter::new(model, joint)?),
+                    Some(forward) => Box::new(JointFilter::new(model, forward.opts)?),
                     None => make_filter(model, name, opts, schedules)?,
                 };
                 let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
@@ -399,6 +418,7 @@ fn run_filters(
                     let pi = arrival.get(t).map(Vec::as_slice);
                     score(t, &smoothed.x[t], &smoothed.p[t], pi)?;
                 }
+                first_note = smoothed.notes.into_iter().next();
             } else {
                 let mut f = make_filter(model, name, opts, schedules)?;
                 let ys = if name == Compared::CentralizedKnown {
@@ -416,6 +436,8 @@ fn run_filters(
                 accuracy: acc,
                 per_step,
                 detection,
+                noted_runs: usize::from(first_note.is_some()),
+                first_note,
             })
         })();
 
@@ -542,13 +564,7 @@ pub fn evaluate(
         })
         .collect::<Result<_>>()?;
 
-    let mut sums: Vec<Scores> = (0..COMPARED)
-        .map(|_| Scores {
-            accuracy: Accuracy::new(model.dims.n),
-            per_step: StepNees::new(model.steps),
-            detection: Detection::default(),
-        })
-        .collect();
+    let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model)).collect();
     let mut times = [0.0; COMPARED];
     for run in &results {
         for (k, (res, time)) in run.iter().enumerate() {
@@ -593,7 +609,15 @@ pub fn evaluate(
                     .smoothers
                     .get(k)
                     .and_then(Option::as_ref)
-                    .map_or_else(Vec::new, |s| s.notes.clone()),
+                    .map_or_else(Vec::new, |s| s.notes.clone())
+                    .into_iter()
+                    .chain(sums[k].first_note.as_ref().map(|note| {
+                        format!(
+                            "{} of {} runs; the first: {note}",
+                            sums[k].noted_runs, opts.runs
+                        )
+                    }))
+                    .collect(),
             }
         })
         .collect();

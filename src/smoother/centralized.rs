@@ -17,7 +17,9 @@ use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
 use crate::error::Result;
 use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment, Update};
 use crate::model::Model;
-use crate::smoother::{BackwardGain, GainView, JointSmoother, MeanPass, Smoothed, Smoother};
+use crate::smoother::{
+    BackwardGain, ForwardPass, GainView, JointSmoother, MeanPass, Smoothed, Smoother,
+};
 
 /// Largest condition estimate of `T(t+1)` for which the RTS form is used (docs/theory.md §9).
 pub const MAX_CONDITION: f64 = 1e12;
@@ -181,7 +183,11 @@ impl CentralizedSmoother<'_> {
         }
         let mut out = joint.backward(keep_gains)?;
         out.bands = None;
-        out.forward = Some(opts);
+        // The joint smoother may itself have rerun with a larger loading.
+        out.forward.get_or_insert(ForwardPass {
+            opts,
+            loading_as_noise: true,
+        });
         out.notes.push(format!(
             "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (docs/theory.md §9)",
             t + 1,

@@ -27,7 +27,7 @@ use crate::linalg::band::{
     diag_t_times_gen, gemm_acc, gen_t_times_gen, sym_times_gen,
 };
 use crate::model::Model;
-use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
+use crate::smoother::{BackwardGain, ForwardPass, GainView, MeanPass, Smoothed, Smoother};
 
 /// The stored forward pass of the joint filter.
 pub struct JointSmoother<'m> {
@@ -41,13 +41,30 @@ pub struct JointSmoother<'m> {
     a_eff: Vec<Arc<GenBand>>,
     /// Treat the loading `ε` as process noise `Q + ε I` (see [`Self::loading_as_noise`]).
     loading_as_noise: bool,
+    opts: JointOptions,
+    /// With the default loading: every step's `y` and `u`, to run again with a larger
+    /// loading if the backward pass loses positive definiteness (docs/theory.md §9).
+    data: Option<Recorded>,
 }
+
+/// Every step's `y` and `u`, as given to [`Smoother::step`].
+#[derive(Default)]
+struct Recorded {
+    y: Vec<Vec<f64>>,
+    u: Vec<Vec<f64>>,
+}
+
+/// The loadings a joint smoother with the default loading tries, in this order, when its
+/// backward pass fails (docs/theory.md §9). At 1e−5 the smoother of `paper.toml` still has
+/// the centralized smoother's RMSE to three digits.
+const RETRY_LOADINGS: [f64; 3] = [1e-7, 1e-6, 1e-5];
 
 impl<'m> JointSmoother<'m> {
     pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
         let mut filter = JointFilter::new(model, opts)?;
         let (n, big_n, k) = (model.dims.n, model.subsystems, filter.band());
         filter.kept_precisions = Some((SymBand::zeros(big_n, n, k), SymBand::zeros(big_n, n, k)));
+        let retry = opts.loading.is_none() && filter.loading() < RETRY_LOADINGS[0];
         Ok(Self {
             model,
             filter,
@@ -57,6 +74,8 @@ impl<'m> JointSmoother<'m> {
             posterior: Vec::new(),
             a_eff: Vec::new(),
             loading_as_noise: false,
+            opts,
+            data: retry.then(Default::default),
         })
     }
 
@@ -75,6 +94,10 @@ impl<'m> JointSmoother<'m> {
 
 impl Smoother for JointSmoother<'_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
+        if let Some(data) = &mut self.data {
+            data.y.push(y.to_vec());
+            data.u.push(u.to_vec());
+        }
         self.x_pred.push(self.filter.predicted().0.to_vec());
         self.filter.step(y, u)?;
         self.x_filt.push(self.filter.filtered().0.to_vec());
@@ -96,7 +119,51 @@ impl Smoother for JointSmoother<'_> {
         self.filter.arrival()
     }
 
-    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
+    /// The backward pass; if it fails with the default loading, the whole smoother again
+    /// with each of [`RETRY_LOADINGS`] until one succeeds, and a note says which.
+    fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
+        let data = self.data.take();
+        let (model, opts, loading_as_noise) = (self.model, self.opts, self.loading_as_noise);
+        let loading = self.filter.loading();
+        let failure = match self.backward_pass(keep_gains) {
+            Ok(smoothed) => return Ok(smoothed),
+            Err(e) => e,
+        };
+        let Some(data) = data else {
+            return Err(failure);
+        };
+        for retry in RETRY_LOADINGS {
+            let opts = JointOptions {
+                loading: Some(retry),
+                ..opts
+            };
+            let mut smoother = JointSmoother::new(model, opts)?;
+            smoother.loading_as_noise = loading_as_noise;
+            for (y, u) in data.y.iter().zip(&data.u) {
+                smoother.step(y, u)?;
+            }
+            if let Ok(mut smoothed) = Box::new(smoother).backward_pass(keep_gains) {
+                let place = match &failure {
+                    Error::Numerical { t, i, .. } => format!("at t = {t}, i = {i}"),
+                    other => other.to_string(),
+                };
+                smoothed.notes.push(format!(
+                    "joint smoother: with the default loading {loading:e} the backward pass lost positive definiteness ({place}); smoothed with --loading {retry:e} instead, its forward pass included (docs/theory.md §9)"
+                ));
+                smoothed.forward = Some(ForwardPass {
+                    opts,
+                    loading_as_noise,
+                });
+                return Ok(smoothed);
+            }
+        }
+        Err(failure)
+    }
+}
+
+impl JointSmoother<'_> {
+    /// The backward pass of docs/theory.md §9 `joint` over the stored forward pass.
+    fn backward_pass(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = self.model;
         let (n, big_n) = (model.dims.n, model.subsystems);
         let k = self.filter.band();

@@ -43,10 +43,29 @@ pub struct Smoothed {
     /// With [`Smoother::backward`]`(true)`: the gain of each step `t = 1..T−1`.
     pub gains: Option<Vec<BackwardGain>>,
     /// Set when the backward pass ran on another forward pass than the smoother's own filter
-    /// (the centralized smoother's fallback): the joint filter with these options, whose
-    /// means the gains belong to, its loading taken as process noise
-    /// ([`JointSmoother::loading_as_noise`]).
-    pub forward: Option<JointOptions>,
+    /// (the centralized smoother's fallback, or the joint smoother's rerun with a larger
+    /// loading): the joint filter whose means the gains belong to.
+    pub forward: Option<ForwardPass>,
+}
+
+/// The joint filter a smoother's gains belong to when it is not the smoother's own filter
+/// ([`Smoothed::forward`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ForwardPass {
+    pub opts: JointOptions,
+    /// Its loading taken as process noise ([`JointSmoother::loading_as_noise`]).
+    pub loading_as_noise: bool,
+}
+
+impl ForwardPass {
+    /// The mean half of the backward pass that goes with this filter.
+    fn mean_pass(&self, model: &Model) -> MeanPass {
+        if self.loading_as_noise {
+            MeanPass::with_extra_noise(model, self.opts.loading_for(model))
+        } else {
+            MeanPass::new(model)
+        }
+    }
 }
 
 /// A smoother: the forward pass, one time step at a time, then the backward pass.
@@ -234,7 +253,7 @@ pub struct SmootherSchedule {
     pub notes: Vec<String>,
     /// The filter whose means the gains belong to, when not the smoother's own
     /// ([`Smoothed::forward`]).
-    pub forward: Option<JointOptions>,
+    pub forward: Option<ForwardPass>,
 }
 
 impl SmootherSchedule {
@@ -268,8 +287,8 @@ impl SmootherSchedule {
     ) -> Vec<Vec<f64>> {
         let steps = x_filt.len();
         assert_eq!(steps, self.gains.len() + 1, "the schedule's horizon");
-        let mut pass = match self.forward {
-            Some(opts) => MeanPass::with_extra_noise(model, opts.loading_for(model)),
+        let mut pass = match &self.forward {
+            Some(forward) => forward.mean_pass(model),
             None => MeanPass::new(model),
         };
         let mut xs = x_filt.to_vec();
@@ -309,10 +328,12 @@ pub fn memory_bytes(model: &Model, kind: SmootherKind, steps: usize) -> u64 {
     let forward = match kind {
         // x̂(t|t), x̂(t+1|t), P(t|t), T(t+1).
         SmootherKind::Distributed => steps * big_n * (2 * n + 2 * n * n) * 8,
-        // x̂(t|t), x̂(t|t−1), Λ⁻ and Λ⁺; the output band takes the place of Λ⁻.
+        // x̂(t|t), x̂(t|t−1), Λ⁻ and Λ⁺ (the output band takes the place of Λ⁻), and with
+        // the default loading y and u for a rerun.
         SmootherKind::Joint(k) => {
             let k = (k as u64).min(big_n - 1);
-            steps * big_n * (2 * n + 2 * (k + 1) * n * n) * 8
+            let (q, m) = (model.dims.q as u64, model.dims.m as u64);
+            steps * big_n * (2 * n + 2 * (k + 1) * n * n + q + m) * 8
         }
         // P(t|t), T(t+1) of the whole chain, the means, y and u.
         SmootherKind::Centralized => {

@@ -357,3 +357,39 @@ fn true_p_simulates_another_arrival_probability_and_mixture_rows_score_detection
     let lost = |k: usize| v["evaluations"][k]["filters"][1]["detection"]["lost"].clone();
     assert_eq!(lost(0), lost(1));
 }
+
+/// Where the joint smoother reruns with a larger loading (docs/theory.md §9; the joint
+/// mixture smoother on `paper.toml` in most runs), its row is scored, not skipped, and one
+/// note says in how many runs that happened.
+#[test]
+fn joint_smoother_reruns_are_counted_in_a_note() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("eval.json");
+    let assert = sisfilt()
+        .arg("evaluate")
+        .arg(shipped_config("paper.toml"))
+        .args(["--smooth", "--filters", "joint-mixture-smoother"])
+        .args(["--runs", "4", "--out"])
+        .arg(&out)
+        .assert()
+        .success();
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let row = json["filters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["name"] == "joint-mixture-smoother")
+        .unwrap();
+    assert!(row["skipped"].is_null(), "{row}");
+    assert!(row["accuracy"]["rmse_overall"].as_f64().unwrap() > 0.0);
+    let notes = row["notes"].as_array().unwrap();
+    assert_eq!(notes.len(), 1, "{notes:?}");
+    let note = notes[0].as_str().unwrap();
+    let (count, rest) = note.split_once(" of 4 runs; the first: ").expect(note);
+    let count: usize = count.parse().expect(note);
+    assert!((1..=4).contains(&count), "{note}");
+    assert!(rest.contains("smoothed with --loading"), "{note}");
+    assert!(stderr.contains(note), "{stderr}");
+}

@@ -713,7 +713,7 @@ fn scheduled_backward_pass_equals_smoothing_each_run() {
             let direct = smooth(make().0, &run.y, &run.u);
             let schedule = SmootherSchedule::new(make().0, &model, &run.u).unwrap();
             let mut filter = match schedule.forward {
-                Some(opts) => Box::new(JointFilter::new(&model, opts).unwrap()),
+                Some(forward) => Box::new(JointFilter::new(&model, forward.opts).unwrap()),
                 None => make().1,
             };
             let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
@@ -733,5 +733,85 @@ fn scheduled_backward_pass_equals_smoothing_each_run() {
             let (gx, gp) = gap(&replayed, &direct);
             assert!(gx < 1e-12 && gp < 1e-12, "{name}: x {gx:e}, P {gp:e}");
         }
+    }
+}
+
+/// With `Q = 0` and the default band 2, the joint smoother of `paper.toml` loses positive
+/// definiteness in its backward pass at the default loading 1e−9, with known dropouts and
+/// with the mixture update. With the default loading it then reruns with a larger one
+/// (docs/theory.md §9): the result is the smoother run with that `--loading` from the start,
+/// bit for bit, and a note names it. A loading the user chose is kept, and the failure is
+/// an error that says what to raise.
+#[test]
+fn joint_smoother_reruns_with_a_larger_loading_where_the_default_fails() {
+    let model = shipped_model("paper.toml");
+    let run = simulate_run(&model, 2);
+    let known_y = lose_some(&run, model.dims.q);
+    for (opts, y) in [
+        (
+            JointOptions {
+                dropouts: Dropouts::Known,
+                ..JointOptions::default()
+            },
+            &known_y,
+        ),
+        (
+            JointOptions {
+                update: Update::Mixture,
+                ..JointOptions::default()
+            },
+            &run.y,
+        ),
+    ] {
+        let what = format!("{:?}, {:?}", opts.dropouts, opts.update);
+        let rerun = smooth(
+            Box::new(JointSmoother::new(&model, opts).unwrap()),
+            y,
+            &run.u,
+        );
+        assert_eq!(rerun.notes.len(), 1, "{what}: {:?}", rerun.notes);
+        let note = &rerun.notes[0];
+        let loading: f64 = note
+            .split("--loading ")
+            .nth(1)
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|word| word.parse().ok())
+            .unwrap_or_else(|| panic!("{what}: no loading in {note}"));
+        assert!(loading > 1e-9 && loading <= 1e-5, "{what}: {note}");
+        let chosen = JointOptions {
+            loading: Some(loading),
+            ..opts
+        };
+        let direct = smooth(
+            Box::new(JointSmoother::new(&model, chosen).unwrap()),
+            y,
+            &run.u,
+        );
+        assert!(direct.notes.is_empty(), "{what}: {:?}", direct.notes);
+        assert_eq!(rerun.x, direct.x, "{what}");
+        assert_eq!(rerun.p, direct.p, "{what}");
+        let forward = rerun.forward.expect("the rerun's filter");
+        assert_eq!(forward.opts.loading, Some(loading), "{what}");
+        assert!(!forward.loading_as_noise, "{what}");
+        // The user's own 1e−9 is kept: the same failure, as an error.
+        let mut own = Box::new(
+            JointSmoother::new(
+                &model,
+                JointOptions {
+                    loading: Some(1e-9),
+                    ..opts
+                },
+            )
+            .unwrap(),
+        );
+        for (y, u) in y.iter().zip(&run.u) {
+            own.step(y, u).unwrap();
+        }
+        let Err(e) = own.finish() else {
+            panic!(
+                "{what}: the joint smoother with --loading 1e-9 no longer fails on paper.toml; the rerun is untested"
+            );
+        };
+        assert!(e.to_string().contains("raise --loading"), "{what}: {e}");
     }
 }
