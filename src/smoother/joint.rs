@@ -120,7 +120,7 @@ impl Smoother for JointSmoother<'_> {
     }
 
     /// The backward pass; if it fails with the default loading, the whole smoother again
-    /// with each of [`RETRY_LOADINGS`] until one succeeds, and a note says which.
+    /// with the loadings 1e−7, 1e−6 and 1e−5 until one succeeds, and a note says which.
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let data = self.data.take();
         let (model, opts, loading_as_noise) = (self.model, self.opts, self.loading_as_noise);
