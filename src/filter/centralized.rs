@@ -90,7 +90,8 @@ impl<'m> CentralizedFilter<'m> {
         }
         let d = self.model.dims;
         self.mixture = Some((vec![0.0; self.model.subsystems], Workspace::new(d.n, d.q)));
-        // The mixture update reads no second moment: its O((N·n)³) recursion would be wasted.
+        // The mixture update reads no second moment (filter::reads_second_moment): its
+        // O((N·n)³) recursion would be wasted.
         self.moments = None;
         Ok(self)
     }

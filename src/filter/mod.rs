@@ -53,6 +53,13 @@ pub trait ChainFilter {
     }
 }
 
+/// Whether the update reads the second moment `S = E[x xᵀ]`: only Nahi's update with unknown
+/// dropouts does (docs/theory.md §4); the known-dropout update (§5) and the mixture update
+/// (§10) need none, so the filters keep no moment recursion for them.
+pub fn reads_second_moment(dropouts: Dropouts, update: Update) -> bool {
+    dropouts == Dropouts::Unknown && update == Update::Linear
+}
+
 /// Checks the estimates of step `t` (`x̂`, `N·n` values, and the diagonal blocks of `P`,
 /// `N·n²`) before they are written or scored: an overflow stops the run at the first
 /// subsystem it reached, naming `t` and `i`.

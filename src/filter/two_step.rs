@@ -28,6 +28,7 @@ use crate::error::{Error, Result};
 use crate::filter::kernel::{DynamicKernel, FixedKernel, LocalData, LocalKernel};
 use crate::filter::{
     ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update,
+    reads_second_moment,
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
@@ -423,9 +424,7 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
             }
         }
         let sharing = Sharing::of(model, &opts);
-        // Only Nahi's update with unknown dropouts reads the second moment (docs/theory.md §4).
-        let uses_second_moment =
-            opts.dropouts == Dropouts::Unknown && opts.update == Update::Linear;
+        let uses_second_moment = reads_second_moment(opts.dropouts, opts.update);
         let per_subsystem_moment =
             uses_second_moment && !sharing.moment && opts.second_moment != SecondMoment::Lifted;
         let moment_cov = if per_subsystem_moment {

@@ -25,7 +25,7 @@ pub use schedule::{JointSchedule, ScheduledJoint};
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi};
+use crate::filter::{ChainFilter, Dropouts, SecondMoment, Update, nahi, reads_second_moment};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{LiftedMoments, LiftedSystem, LiftedWorkspace, a_eff_band, propagate_mean};
 use crate::linalg::band::{
@@ -322,20 +322,22 @@ impl<'m> JointFilter<'m> {
         let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
         let w = (k + 2 * a_eff.half_width()).min(big_n - 1);
         let mean: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
-        // Neither the known-dropout nor the mixture update uses the second moment.
-        let moments = match (known || mixture, opts.second_moment) {
-            (true, _) => Moments::None,
-            (false, SecondMoment::Band) => Moments::Band {
+        let moments = match (
+            reads_second_moment(opts.dropouts, opts.update),
+            opts.second_moment,
+        ) {
+            (false, _) => Moments::None,
+            (true, SecondMoment::Band) => Moments::Band {
                 mean: mean.clone(),
                 cov: initial_band(model, k),
                 completed: SymBand::zeros(big_n, n, w),
                 chol: Box::new(BandCholesky::new(big_n, n, k)),
             },
-            (false, SecondMoment::Lifted) => Moments::Lifted {
+            (true, SecondMoment::Lifted) => Moments::Lifted {
                 sys: Box::new(LiftedSystem::new(model, 1)?),
                 moments: Box::new(LiftedMoments::initial(model)),
             },
-            (false, SecondMoment::Local) => Moments::Local {
+            (true, SecondMoment::Local) => Moments::Local {
                 mean: mean.clone(),
                 cov: (0..big_n)
                     .flat_map(|_| model.initial_cov.as_slice().iter().copied())
@@ -343,7 +345,7 @@ impl<'m> JointFilter<'m> {
                 scratch: vec![0.0; n * n],
                 ws: Box::new(nahi::Workspace::new(n, q)),
             },
-            (false, SecondMoment::Paper) => {
+            (true, SecondMoment::Paper) => {
                 return Err(Error::Usage(
                     "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
                 ));
