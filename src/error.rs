@@ -42,6 +42,10 @@ pub enum Error {
     #[error("{file}: {msg}")]
     File { file: String, msg: String },
 
+    /// The settings of a run do not go together ([`crate::run::RunSpec::check`]).
+    #[error(transparent)]
+    Spec(#[from] crate::run::SpecError),
+
     /// A command-line argument is unusable.
     #[error("{0}")]
     Usage(String),

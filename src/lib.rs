@@ -63,6 +63,7 @@ pub mod linalg;
 pub mod messages;
 pub mod model;
 pub mod plot;
+pub mod run;
 pub mod simulate;
 pub mod smoother;
 

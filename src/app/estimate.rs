@@ -10,25 +10,23 @@ use sisfilt::accuracy::{Accuracy, AccuracyReport, Detection};
 use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
 use sisfilt::filter::{
-    CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
-    JointOptions, SecondMoment, TwoStepOptions, Update, check_estimates, two_step,
+    ChainFilter, Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update, check_estimates,
 };
 use sisfilt::inputs::{InputStream, open_csv};
 use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
 use sisfilt::io::estimates::{
-    BackgroundWriter, ConfigRef, EstimateKind, EstimateOptions, EstimatesColumns,
-    EstimatesMetadata, EstimatesSummary, EstimatesWriter, Format, JointSettings,
+    BackgroundWriter, ConfigRef, EstimateKind, EstimatesColumns, EstimatesMetadata,
+    EstimatesSummary, EstimatesWriter, Format,
 };
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, StepReader, check_files, folder_of};
 use sisfilt::lifted::spectral_radius;
 use sisfilt::messages::{info, warn};
 use sisfilt::model::Model;
-use sisfilt::smoother::{
-    CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
-    SmootherKind, human_bytes, memory_bytes,
-};
+use sisfilt::run::{CheckedSpec, RunSpec};
+use sisfilt::smoother::{Smoother, human_bytes, memory_bytes};
 
 use super::choice::choice;
+use super::in_flag_words;
 
 /// Power-iteration steps of the quick stability warning (`check` takes more).
 const POWER_STEPS: usize = 400;
@@ -124,73 +122,36 @@ fn parse_max_memory(text: &str) -> Result<u64, String> {
     sisfilt::smoother::parse_bytes(text)
 }
 
-/// What `estimate` computes, with every combination of options checked: made from the
-/// arguments alone, before any file is read.
-#[derive(Debug, Clone, Copy)]
-struct Plan {
-    filter: FilterKind,
-    /// The two-step filter's options (`--paper` and the options that override it); the
-    /// dropout mode serves every filter.
-    two_step: TwoStepOptions,
-    /// The joint filter's options (`--filter joint` only).
-    joint: Option<JointOptions>,
-    output: EstimateKind,
-    /// The smoother stops once its stored forward pass would exceed this many bytes.
-    max_memory: u64,
-    format: Format,
-}
+impl EstimateArgs {
+    /// The run the arguments ask for, checked (docs/theory.md §13).
+    fn spec(&self) -> Result<CheckedSpec> {
+        let spec = RunSpec {
+            filter: self.filter,
+            update: self.update,
+            dropouts: self.dropouts,
+            paper: self.paper,
+            solver: self.solver,
+            second_moment: self.second_moment,
+            interconnect_from: self.interconnect_from,
+            band: self.band,
+            band_tol: self.band_tol,
+            loading: self.loading,
+            smooth: self.smooth,
+            predicted: self.predicted,
+            max_lifted: self.max_lifted,
+            max_memory: self.max_memory,
+        };
+        Ok(spec.check().map_err(in_flag_words)?)
+    }
 
-impl Plan {
-    /// Checks the option combinations of `args` (docs/theory.md §13).
-    fn new(args: &EstimateArgs) -> Result<Self> {
-        let mut two_step = if args.paper {
-            TwoStepOptions::paper()
-        } else {
-            TwoStepOptions::default()
-        };
-        two_step.solver = args.solver.unwrap_or(two_step.solver);
-        two_step.second_moment = args.second_moment.unwrap_or(two_step.second_moment);
-        two_step.interconnect_from = args.interconnect_from.unwrap_or(two_step.interconnect_from);
-        two_step.dropouts = args.dropouts;
-        two_step.update = args.update;
-        if args.update == Update::Mixture && args.dropouts == Dropouts::Known {
-            return Err(Error::Usage(
-                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
-            )
-            .into());
-        }
-        let joint = joint_options(args)?;
-        let output = match (args.smooth, args.predicted, args.max_memory) {
-            (true, _, _) => EstimateKind::Smoothed,
-            (false, _, Some(_)) => {
-                return Err(Error::Usage("--max-memory belongs to --smooth".into()).into());
-            }
-            (false, true, None) => EstimateKind::Predicted,
-            (false, false, None) => EstimateKind::Filtered,
-        };
-        let json_name = args
+    /// The output format: `--format`, else json when `--out` ends in `.json`, else csv.
+    fn format(&self) -> Format {
+        let json_name = self
             .out
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("json"));
-        let format = args
-            .format
-            .unwrap_or(if json_name { Format::Json } else { Format::Csv });
-        Ok(Self {
-            filter: args.filter,
-            two_step,
-            joint,
-            output,
-            max_memory: args.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
-            format,
-        })
-    }
-
-    fn dropouts(&self) -> Dropouts {
-        self.two_step.dropouts
-    }
-
-    fn update(&self) -> Update {
-        self.two_step.update
+        self.format
+            .unwrap_or(if json_name { Format::Json } else { Format::Csv })
     }
 }
 
@@ -251,7 +212,7 @@ fn sha256_hex(text: &str) -> String {
 /// `--smooth`, after the backward pass).
 pub fn run(args: &EstimateArgs) -> Result<()> {
     let started = std::time::Instant::now();
-    let plan = Plan::new(args)?;
+    let spec = args.spec()?;
     let (src, run_dir) = estimate_config(args)?;
     let model = Model::from_config(&src)?;
     let d = model.dims;
@@ -290,7 +251,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     }
     check_files(&read, &[Role::new("--out", &args.out)])?;
     let inputs = InputStream::open(&model, inputs_file.as_deref())?;
-    let meas = open_csv(&args.meas, measurement_layout(d.q, plan.dropouts()), big_n)?;
+    let meas = open_csv(&args.meas, measurement_layout(d.q, spec.dropouts()), big_n)?;
     let truth = args
         .truth
         .as_ref()
@@ -299,25 +260,24 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;
 
-    warn_about(&plan, &model)?;
+    warn_about(&spec, &model)?;
 
-    let metadata = metadata(args, &plan, &src, inputs_file.as_deref(), &model);
+    let metadata = metadata(args, &spec, &src, inputs_file.as_deref(), &model);
     let out_name = args.out.display().to_string();
-    if plan.output == EstimateKind::Smoothed {
-        let smoother = make_smoother(args, &plan, &model)?;
-        let k = plan.joint.map_or(0, |j| j.band.min(big_n - 1));
+    if spec.output() == EstimateKind::Smoothed {
+        let smoother = spec.build_smoother(&model)?;
         let columns = EstimatesColumns {
             n,
-            cross: k,
-            arrival: plan.update() == Update::Mixture,
+            cross: spec.cross_band(&model),
+            arrival: spec.update() == Update::Mixture,
         };
-        let writer = EstimatesWriter::new(output, plan.format, columns, Some(&metadata))
+        let writer = EstimatesWriter::new(output, args.format(), columns, Some(&metadata))
             .map_err(|e| Error::io(&out_name, e))?;
         return run_smoother(
             args,
             &model,
             smoother,
-            &plan,
+            &spec,
             FilterIo {
                 meas,
                 inputs,
@@ -326,33 +286,19 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
             },
         );
     }
-    let filter: Box<dyn ChainFilter> = match (plan.filter, plan.joint) {
-        (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(&model, j)?),
-        (FilterKind::Centralized, _) => {
-            let filter = CentralizedFilter::new(
-                &model,
-                plan.dropouts() == Dropouts::Known,
-                args.max_lifted,
-            )?;
-            match plan.update() {
-                Update::Linear => Box::new(filter),
-                Update::Mixture => Box::new(filter.with_mixture_update()?),
-            }
-        }
-        _ => two_step(&model, plan.two_step)?,
-    };
+    let filter = spec.build_filter(&model)?;
     let columns = EstimatesColumns {
         n,
         cross: filter.covariance_band(false).map_or(0, |(_, k)| k),
         arrival: filter.arrival().is_some(),
     };
-    let writer = EstimatesWriter::new(output, plan.format, columns, Some(&metadata))
+    let writer = EstimatesWriter::new(output, args.format(), columns, Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?;
     run_filter(
         args,
         &model,
         filter,
-        plan.output == EstimateKind::Predicted,
+        spec.output() == EstimateKind::Predicted,
         FilterIo {
             meas,
             inputs,
@@ -363,20 +309,20 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     )
 }
 
-/// The warnings a run of `plan` on `model` deserves before it starts: a distributed filter
+/// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
 /// whose covariance cannot be trusted, an unstable chain.
-fn warn_about(plan: &Plan, model: &Model) -> Result<()> {
-    if plan.filter == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
+fn warn_about(spec: &CheckedSpec, model: &Model) -> Result<()> {
+    if spec.filter_kind() == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
         warn(
             "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
         );
-        if plan.output == EstimateKind::Smoothed {
+        if spec.output() == EstimateKind::Smoothed {
             warn(
                 "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
             );
         }
     }
-    if plan.dropouts() == Dropouts::Unknown
+    if spec.dropouts() == Dropouts::Unknown
         && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
     {
         let rho = spectral_radius(model, 1, POWER_STEPS)?;
@@ -393,13 +339,11 @@ fn warn_about(plan: &Plan, model: &Model) -> Result<()> {
 /// The metadata at the head of an estimates JSON file.
 fn metadata(
     args: &EstimateArgs,
-    plan: &Plan,
+    spec: &CheckedSpec,
     src: &ConfigSource,
     inputs_file: Option<&std::path::Path>,
     model: &Model,
 ) -> EstimatesMetadata {
-    // The two-step filter's options; the other filters ignore them.
-    let two_step = (plan.filter == FilterKind::Distributed).then_some(plan.two_step);
     EstimatesMetadata {
         config: ConfigRef {
             path: src.name.clone(),
@@ -408,25 +352,7 @@ fn metadata(
         inputs: inputs_file.map(|p| p.display().to_string()),
         measurements: args.meas.display().to_string(),
         n: model.dims.n,
-        options: EstimateOptions {
-            dropouts: plan.dropouts(),
-            filter: plan.filter,
-            interconnect_from: two_step.map(|o| o.interconnect_from),
-            joint: plan.joint.map(|j| JointSettings {
-                band: j.band.min(model.subsystems - 1),
-                band_tol: j.band_tol,
-                loading: j.loading_for(model),
-                second_moment: j.second_moment,
-            }),
-            output: plan.output,
-            paper: args.paper,
-            // The mixture update has no second moment.
-            second_moment: two_step
-                .filter(|o| o.update == Update::Linear)
-                .map(|o| o.second_moment),
-            solver: two_step.map(|o| o.solver),
-            update: plan.update(),
-        },
+        options: spec.recorded(model),
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         subsystems: model.subsystems,
     }
@@ -554,39 +480,13 @@ fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
     Ok(())
 }
 
-/// The smoother of `--filter` (docs/theory.md §9).
-fn make_smoother<'m>(
-    args: &EstimateArgs,
-    plan: &Plan,
-    model: &'m Model,
-) -> Result<Box<dyn Smoother + 'm>> {
-    Ok(match (plan.filter, plan.joint) {
-        (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
-        (FilterKind::Centralized, _) => {
-            let smoother = CentralizedSmoother::new(
-                model,
-                plan.dropouts() == Dropouts::Known,
-                args.max_lifted,
-            )?;
-            match plan.update() {
-                Update::Linear => Box::new(smoother),
-                Update::Mixture => Box::new(smoother.with_mixture_update()?),
-            }
-        }
-        _ => Box::new(DistributedSmoother::new(
-            model,
-            two_step(model, plan.two_step)?,
-        )),
-    })
-}
-
 /// `estimate --smooth`: the forward pass over the whole file (refused politely once its
 /// stored steps exceed `--max-memory`), the backward pass, then every row.
 fn run_smoother<R: std::io::Read, T: std::io::Read>(
     args: &EstimateArgs,
     model: &Model,
     mut smoother: Box<dyn Smoother + '_>,
-    plan: &Plan,
+    spec: &CheckedSpec,
     io: FilterIo<R, T>,
 ) -> Result<()> {
     let FilterIo {
@@ -596,12 +496,8 @@ fn run_smoother<R: std::io::Read, T: std::io::Read>(
         mut writer,
     } = io;
     let (n, big_n) = (model.dims.n, model.subsystems);
-    let kind = match (plan.filter, plan.joint) {
-        (FilterKind::Joint, Some(j)) => SmootherKind::Joint(j.band),
-        (FilterKind::Centralized, _) => SmootherKind::Centralized,
-        _ => SmootherKind::Distributed,
-    };
-    let limit = plan.max_memory;
+    let kind = spec.smoother_kind();
+    let limit = spec.max_memory();
     let mut y = vec![0.0; meas.row_values()];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut truth_rows: Vec<Vec<f64>> = Vec::new();
@@ -741,48 +637,6 @@ fn finish_inputs(meas_name: &str, steps: usize, inputs: InputStream) -> Result<(
     }
     inputs.finish(steps)?;
     Ok(())
-}
-
-/// The joint filter's options from the command line (`None` for the other filters, which
-/// reject the joint filter's options: docs/theory.md §13).
-fn joint_options(args: &EstimateArgs) -> Result<Option<JointOptions>> {
-    if args.filter != FilterKind::Joint {
-        let only_joint = [
-            (args.band.is_some(), "--band"),
-            (args.band_tol.is_some(), "--band-tol"),
-            (args.loading.is_some(), "--loading"),
-            (
-                args.second_moment == Some(SecondMoment::Band),
-                "--second-moment band",
-            ),
-        ];
-        if let Some((_, name)) = only_joint.iter().find(|(given, _)| *given) {
-            return Err(Error::Usage(format!(
-                "{name} belongs to the joint filter; add --filter joint"
-            ))
-            .into());
-        }
-        return Ok(None);
-    }
-    let second_moment = match args.second_moment {
-        Some(SecondMoment::Paper) => {
-            return Err(Error::Usage(
-                "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
-            )
-            .into());
-        }
-        Some(s) => s,
-        None => SecondMoment::Band,
-    };
-    let defaults = JointOptions::default();
-    Ok(Some(JointOptions {
-        band: args.band.unwrap_or(defaults.band),
-        band_tol: args.band_tol.unwrap_or(defaults.band_tol),
-        loading: args.loading,
-        second_moment,
-        dropouts: args.dropouts,
-        update: args.update,
-    }))
 }
 
 /// Wall-clock time spent in each phase of `estimate` (`--timings`).

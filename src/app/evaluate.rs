@@ -12,7 +12,7 @@ use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
 
 use super::choice::choice;
-use super::{config_files, print_line};
+use super::{config_files, in_flag_words, print_line};
 
 #[derive(Debug, clap::Args)]
 pub struct EvaluateArgs {
@@ -105,7 +105,8 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         rayon::current_num_threads()
     ));
     if let Some(values) = sweep {
-        let result = sisfilt::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))?;
+        let result = sisfilt::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))
+            .map_err(in_flag_words)?;
         bar.finish_and_clear();
         info(format!("evaluate: {:.2} s", result.total_wall_time_s));
         for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
@@ -114,7 +115,8 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         write_json(out, &result)?;
         return print_line(result.table().trim_end_matches('\n'));
     }
-    let result = sisfilt::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))?;
+    let result = sisfilt::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))
+        .map_err(in_flag_words)?;
     bar.finish_and_clear();
     info(format!(
         "evaluate: {:.2} s ({})",

@@ -25,6 +25,7 @@ use sisfilt::error::Error;
 use sisfilt::inputs::InputStream;
 use sisfilt::io::{Output, Role};
 use sisfilt::model::Model;
+use sisfilt::run::{Setting, SpecError};
 
 /// Distributed state estimation for chains of interconnected subsystems whose sensors drop
 /// measurements at random (two-step filter of Bai Li's paper, with the corrections of docs/theory.md §6).
@@ -130,4 +131,32 @@ fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
         read.push(Role::new("the inputs file", path));
     }
     read
+}
+
+/// A library error in the command line's words: a [`SpecError`] names the flags of its
+/// settings; every other error is left as it is.
+fn in_flag_words(e: impl Into<Error>) -> Error {
+    let e = match e.into() {
+        Error::Spec(e) => e,
+        other => return other,
+    };
+    let flag = |setting: Setting| match setting {
+        Setting::Band => "--band",
+        Setting::BandTol => "--band-tol",
+        Setting::Loading => "--loading",
+        Setting::SecondMomentBand => "--second-moment band",
+        Setting::MaxMemory => "--max-memory",
+    };
+    Error::Usage(match e {
+        SpecError::MixtureWithKnownDropouts => "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
+        SpecError::JointOnly(setting) => {
+            format!("{} belongs to the joint filter; add --filter joint", flag(setting))
+        }
+        SpecError::PaperMomentInJoint => "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
+        SpecError::MaxMemoryWithoutSmooth => "--max-memory belongs to --smooth".into(),
+        SpecError::SmoothAndPredicted => "--smooth and --predicted exclude each other".into(),
+        SpecError::NotFiniteNonNegative { setting, value } => {
+            format!("{} {value}: expected a finite number ≥ 0", flag(setting))
+        }
+    })
 }

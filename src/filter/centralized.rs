@@ -11,9 +11,11 @@ use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorViewMut};
 use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
 use crate::filter::nahi::{self, CovarianceForm, Workspace};
+use crate::filter::{Dropouts, Update};
 use crate::lifted::{LiftedMoments, LiftedSystem};
 use crate::linalg::symmetrize;
 use crate::model::Model;
+use crate::run::check_update;
 
 /// Default largest lifted state size `N·n` the centralized filter accepts.
 pub const DEFAULT_MAX_LIFTED: usize = 1000;
@@ -83,11 +85,12 @@ impl<'m> CentralizedFilter<'m> {
     /// covariance form, `G = I + 𝒲 𝒥 T 𝒥ᵀ`, `X̂(t|t) = X̂ + T 𝒥ᵀ G⁻¹ r`,
     /// `P(t|t) = T − T 𝒥ᵀ G⁻¹ 𝒲 𝒥 T`. Unknown dropouts only.
     pub fn with_mixture_update(mut self) -> Result<Self> {
-        if self.known {
-            return Err(Error::Usage(
-                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
-            ));
-        }
+        let dropouts = if self.known {
+            Dropouts::Known
+        } else {
+            Dropouts::Unknown
+        };
+        check_update(dropouts, Update::Mixture)?;
         let d = self.model.dims;
         self.mixture = Some((vec![0.0; self.model.subsystems], Workspace::new(d.n, d.q)));
         // The mixture update reads no second moment (filter::reads_second_moment): its

@@ -34,6 +34,7 @@ use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
+use crate::run::check_update;
 
 /// Chains at least this long run the local phases in parallel, in chunks of [`CHUNK`]
 /// subsystems (fixed, so that the work of a chunk does not depend on the thread count).
@@ -444,11 +445,7 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         } else {
             None
         };
-        if opts.update == Update::Mixture && opts.dropouts == Dropouts::Known {
-            return Err(Error::Usage(
-                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
-            ));
-        }
+        check_update(opts.dropouts, opts.update)?;
         let worker = Worker::<K>::new(model);
         let gain = worker.kernel.new_gain();
         Ok(Self {

@@ -34,6 +34,7 @@ use crate::linalg::band::{
 };
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
+use crate::run::spec::{Setting, SpecError, check_non_negative, check_update};
 
 /// Default `--band K`.
 pub const DEFAULT_BAND: usize = 2;
@@ -96,23 +97,11 @@ impl JointOptions {
 
     /// Refuses options no model can use: a negative or non-finite `band_tol` or `loading`,
     /// the mixture update with known dropouts.
-    pub fn check(&self) -> Result<()> {
-        if self.update == Update::Mixture && self.dropouts == Dropouts::Known {
-            return Err(Error::Usage(
-                "--update mixture detects lost measurements; with --dropouts known there is nothing to detect".into(),
-            ));
-        }
-        let bad = |x: f64| !x.is_finite() || x < 0.0;
-        if bad(self.band_tol) {
-            return Err(Error::Usage(format!(
-                "--band-tol {}: expected a finite number ≥ 0",
-                self.band_tol
-            )));
-        }
-        if let Some(loading) = self.loading.filter(|&e| bad(e)) {
-            return Err(Error::Usage(format!(
-                "--loading {loading}: expected a finite number ≥ 0"
-            )));
+    pub fn check(&self) -> std::result::Result<(), SpecError> {
+        check_update(self.dropouts, self.update)?;
+        check_non_negative(Setting::BandTol, self.band_tol)?;
+        if let Some(loading) = self.loading {
+            check_non_negative(Setting::Loading, loading)?;
         }
         Ok(())
     }

@@ -1,0 +1,461 @@
+//! What a run computes: [`RunSpec`], the settings as asked for, and [`CheckedSpec`], the same
+//! settings once every combination rule has been checked (docs/theory.md §13). A front end
+//! fills a `RunSpec`, calls [`RunSpec::check`] once, and builds filters and smoothers from the
+//! checked form; nothing downstream checks a setting again.
+
+use crate::filter::centralized::DEFAULT_MAX_LIFTED;
+use crate::filter::{
+    CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
+    JointOptions, SecondMoment, TwoStepOptions, Update, two_step,
+};
+use crate::interconnect::SolverKind;
+use crate::io::estimates::{EstimateKind, EstimateOptions, JointSettings};
+use crate::model::Model;
+use crate::smoother::{
+    CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
+    SmootherKind,
+};
+
+/// A setting of a [`RunSpec`] that a [`SpecError`] is about, by its field name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Setting {
+    Band,
+    BandTol,
+    Loading,
+    SecondMomentBand,
+    MaxMemory,
+}
+
+impl Setting {
+    /// The setting as the library names it (`band_tol`, `second_moment = band`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Band => "band",
+            Self::BandTol => "band_tol",
+            Self::Loading => "loading",
+            Self::SecondMomentBand => "second_moment = band",
+            Self::MaxMemory => "max_memory",
+        }
+    }
+}
+
+/// A [`RunSpec`] whose settings do not go together, or a value out of its range. Each names the
+/// settings by their field names; a front end may put them in its own words (the command line
+/// names its flags).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SpecError {
+    /// The mixture update detects lost measurements; with known dropouts there is nothing to
+    /// detect (docs/theory.md §10).
+    #[error(
+        "update = mixture needs dropouts = unknown: with known dropouts there is nothing to detect"
+    )]
+    MixtureWithKnownDropouts,
+    /// `band`, `band_tol`, `loading` and `second_moment = band` are the joint filter's.
+    #[error("{} belongs to the joint filter (filter = joint)", .0.name())]
+    JointOnly(Setting),
+    /// The paper's moment recursion is the two-step filter's.
+    #[error(
+        "second_moment = paper belongs to the distributed filter; the joint filter takes band, lifted or local"
+    )]
+    PaperMomentInJoint,
+    /// `max_memory` limits the smoother's stored forward pass.
+    #[error("max_memory belongs to smooth = true")]
+    MaxMemoryWithoutSmooth,
+    /// A smoothed run writes `x̂(t|T)`, a predicted one `x̂(t+1|t)`: one or the other.
+    #[error("smooth and predicted exclude each other")]
+    SmoothAndPredicted,
+    /// `band_tol` and `loading` are finite numbers ≥ 0.
+    #[error("{} = {value}: expected a finite number ≥ 0", .setting.name())]
+    NotFiniteNonNegative { setting: Setting, value: f64 },
+}
+
+/// The one rule on how the measurements update the estimate: the mixture update needs unknown
+/// dropouts. [`RunSpec::check`] applies it; so do the filters' own constructors, for callers that
+/// build one directly.
+pub fn check_update(dropouts: Dropouts, update: Update) -> Result<(), SpecError> {
+    if update == Update::Mixture && dropouts == Dropouts::Known {
+        return Err(SpecError::MixtureWithKnownDropouts);
+    }
+    Ok(())
+}
+
+/// Checks that `value` of `setting` is a finite number ≥ 0.
+pub(crate) fn check_non_negative(setting: Setting, value: f64) -> Result<(), SpecError> {
+    if !value.is_finite() || value < 0.0 {
+        return Err(SpecError::NotFiniteNonNegative { setting, value });
+    }
+    Ok(())
+}
+
+/// The settings of a run, as asked for (docs/theory.md §13). `None` means the default, which
+/// may depend on other settings (the paper's preset, the filter); [`RunSpec::check`] resolves
+/// them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunSpec {
+    pub filter: FilterKind,
+    pub update: Update,
+    pub dropouts: Dropouts,
+    /// The paper's two-step filter ([`TwoStepOptions::paper`]); the explicit two-step settings
+    /// below win over it.
+    pub paper: bool,
+    /// Step 1's solver (two-step filter).
+    pub solver: Option<SolverKind>,
+    /// `S = E[x xᵀ]` in Nahi's update (two-step filter; `band` is the joint filter's default).
+    pub second_moment: Option<SecondMoment>,
+    /// The estimate fed to step 1 (two-step filter).
+    pub interconnect_from: Option<InterconnectFrom>,
+    /// The joint filter's covariance band `K`.
+    pub band: Option<usize>,
+    /// The joint filter's relative tolerance of `A_eff`'s band.
+    pub band_tol: Option<f64>,
+    /// The joint filter's diagonal loading `ε`.
+    pub loading: Option<f64>,
+    /// `x̂(t|T)`, `P(t|T)` from every measurement instead of the filtered estimates.
+    pub smooth: bool,
+    /// `x̂(t+1|t)`, `T(t+1)` on row `t` instead of the filtered estimates.
+    pub predicted: bool,
+    /// Largest lifted state `N·n` the centralized filter accepts.
+    pub max_lifted: usize,
+    /// Largest memory (bytes) the smoother's stored forward pass may take.
+    pub max_memory: Option<u64>,
+}
+
+impl Default for RunSpec {
+    /// The distributed filter with its default options, filtered estimates.
+    fn default() -> Self {
+        Self {
+            filter: FilterKind::Distributed,
+            update: Update::Linear,
+            dropouts: Dropouts::Unknown,
+            paper: false,
+            solver: None,
+            second_moment: None,
+            interconnect_from: None,
+            band: None,
+            band_tol: None,
+            loading: None,
+            smooth: false,
+            predicted: false,
+            max_lifted: DEFAULT_MAX_LIFTED,
+            max_memory: None,
+        }
+    }
+}
+
+impl RunSpec {
+    /// Every combination rule, in one place; the first broken one is the error.
+    pub fn check(&self) -> Result<CheckedSpec, SpecError> {
+        check_update(self.dropouts, self.update)?;
+        let mut two_step = if self.paper {
+            TwoStepOptions::paper()
+        } else {
+            TwoStepOptions::default()
+        };
+        two_step.solver = self.solver.unwrap_or(two_step.solver);
+        two_step.second_moment = self.second_moment.unwrap_or(two_step.second_moment);
+        two_step.interconnect_from = self.interconnect_from.unwrap_or(two_step.interconnect_from);
+        two_step.dropouts = self.dropouts;
+        two_step.update = self.update;
+        let joint = self.joint_options()?;
+        let output = match (self.smooth, self.predicted, self.max_memory) {
+            (true, true, _) => return Err(SpecError::SmoothAndPredicted),
+            (true, false, _) => EstimateKind::Smoothed,
+            (false, _, Some(_)) => return Err(SpecError::MaxMemoryWithoutSmooth),
+            (false, true, None) => EstimateKind::Predicted,
+            (false, false, None) => EstimateKind::Filtered,
+        };
+        Ok(CheckedSpec {
+            filter: self.filter,
+            paper: self.paper,
+            two_step,
+            joint,
+            output,
+            max_lifted: self.max_lifted,
+            max_memory: self.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
+        })
+    }
+
+    /// The joint filter's options (`None` for the other filters, which refuse the joint
+    /// filter's settings).
+    fn joint_options(&self) -> Result<Option<JointOptions>, SpecError> {
+        if self.filter != FilterKind::Joint {
+            let only_joint = [
+                (self.band.is_some(), Setting::Band),
+                (self.band_tol.is_some(), Setting::BandTol),
+                (self.loading.is_some(), Setting::Loading),
+                (
+                    self.second_moment == Some(SecondMoment::Band),
+                    Setting::SecondMomentBand,
+                ),
+            ];
+            return match only_joint.iter().find(|(given, _)| *given) {
+                Some(&(_, setting)) => Err(SpecError::JointOnly(setting)),
+                None => Ok(None),
+            };
+        }
+        let second_moment = match self.second_moment {
+            Some(SecondMoment::Paper) => return Err(SpecError::PaperMomentInJoint),
+            Some(s) => s,
+            None => SecondMoment::Band,
+        };
+        let defaults = JointOptions::default();
+        let joint = JointOptions {
+            band: self.band.unwrap_or(defaults.band),
+            band_tol: self.band_tol.unwrap_or(defaults.band_tol),
+            loading: self.loading,
+            second_moment,
+            dropouts: self.dropouts,
+            update: self.update,
+        };
+        joint.check()?;
+        Ok(Some(joint))
+    }
+}
+
+/// A [`RunSpec`] whose settings go together, with every default resolved: made only by
+/// [`RunSpec::check`]. It builds the filter or smoother it describes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CheckedSpec {
+    filter: FilterKind,
+    paper: bool,
+    /// The two-step filter's options; the dropout mode and the update serve every filter.
+    two_step: TwoStepOptions,
+    /// The joint filter's options (`filter = joint` only).
+    joint: Option<JointOptions>,
+    output: EstimateKind,
+    max_lifted: usize,
+    max_memory: u64,
+}
+
+impl CheckedSpec {
+    pub fn filter_kind(&self) -> FilterKind {
+        self.filter
+    }
+
+    pub fn dropouts(&self) -> Dropouts {
+        self.two_step.dropouts
+    }
+
+    pub fn update(&self) -> Update {
+        self.two_step.update
+    }
+
+    /// Which estimates the run gives: filtered, predicted or smoothed.
+    pub fn output(&self) -> EstimateKind {
+        self.output
+    }
+
+    /// The smoother stops once its stored forward pass would exceed this many bytes.
+    pub fn max_memory(&self) -> u64 {
+        self.max_memory
+    }
+
+    /// The smoother, for its memory estimate.
+    pub fn smoother_kind(&self) -> SmootherKind {
+        match (self.filter, self.joint) {
+            (FilterKind::Joint, Some(j)) => SmootherKind::Joint(j.band),
+            (FilterKind::Centralized, _) => SmootherKind::Centralized,
+            _ => SmootherKind::Distributed,
+        }
+    }
+
+    /// The covariance band `k` the run's estimates carry beside their diagonal blocks on
+    /// `model` (the joint filter's, at most `N − 1`; 0 for the others).
+    pub fn cross_band(&self, model: &Model) -> usize {
+        self.joint.map_or(0, |j| j.band.min(model.subsystems - 1))
+    }
+
+    /// The filter (docs/theory.md §4, §7, §8, §10).
+    pub fn build_filter<'m>(&self, model: &'m Model) -> crate::Result<Box<dyn ChainFilter + 'm>> {
+        Ok(match (self.filter, self.joint) {
+            (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(model, j)?),
+            (FilterKind::Centralized, _) => {
+                let known = self.dropouts() == Dropouts::Known;
+                let filter = CentralizedFilter::new(model, known, self.max_lifted)?;
+                match self.update() {
+                    Update::Linear => Box::new(filter),
+                    Update::Mixture => Box::new(filter.with_mixture_update()?),
+                }
+            }
+            _ => two_step(model, self.two_step)?,
+        })
+    }
+
+    /// The smoother of the filter (docs/theory.md §9).
+    pub fn build_smoother<'m>(&self, model: &'m Model) -> crate::Result<Box<dyn Smoother + 'm>> {
+        Ok(match (self.filter, self.joint) {
+            (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
+            (FilterKind::Centralized, _) => {
+                let known = self.dropouts() == Dropouts::Known;
+                let smoother = CentralizedSmoother::new(model, known, self.max_lifted)?;
+                match self.update() {
+                    Update::Linear => Box::new(smoother),
+                    Update::Mixture => Box::new(smoother.with_mixture_update()?),
+                }
+            }
+            _ => Box::new(DistributedSmoother::new(
+                model,
+                two_step(model, self.two_step)?,
+            )),
+        })
+    }
+
+    /// The options as an estimates file records them, on `model`.
+    pub fn recorded(&self, model: &Model) -> EstimateOptions {
+        // The two-step filter's options; the other filters ignore them.
+        let two_step = (self.filter == FilterKind::Distributed).then_some(self.two_step);
+        EstimateOptions {
+            dropouts: self.dropouts(),
+            filter: self.filter,
+            interconnect_from: two_step.map(|o| o.interconnect_from),
+            joint: self.joint.map(|j| JointSettings {
+                band: j.band.min(model.subsystems - 1),
+                band_tol: j.band_tol,
+                loading: j.loading_for(model),
+                second_moment: j.second_moment,
+            }),
+            output: self.output,
+            paper: self.paper,
+            // The mixture update has no second moment.
+            second_moment: two_step
+                .filter(|o| o.update == Update::Linear)
+                .map(|o| o.second_moment),
+            solver: two_step.map(|o| o.solver),
+            update: self.update(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_spec_is_the_distributed_filter_with_its_defaults() {
+        let checked = RunSpec::default().check().unwrap();
+        assert_eq!(checked.filter_kind(), FilterKind::Distributed);
+        assert_eq!(checked.two_step, TwoStepOptions::default());
+        assert_eq!(checked.joint, None);
+        assert_eq!(checked.output(), EstimateKind::Filtered);
+        assert_eq!(checked.max_memory(), DEFAULT_MAX_MEMORY);
+    }
+
+    #[test]
+    fn the_paper_preset_yields_to_explicit_settings() {
+        let spec = RunSpec {
+            paper: true,
+            solver: Some(SolverKind::Banded),
+            ..RunSpec::default()
+        };
+        let checked = spec.check().unwrap();
+        assert_eq!(
+            checked.two_step,
+            TwoStepOptions {
+                solver: SolverKind::Banded,
+                ..TwoStepOptions::paper()
+            }
+        );
+    }
+
+    #[test]
+    fn the_joint_filter_defaults_to_its_band_moment() {
+        let spec = RunSpec {
+            filter: FilterKind::Joint,
+            band: Some(4),
+            ..RunSpec::default()
+        };
+        let joint = spec.check().unwrap().joint.unwrap();
+        assert_eq!(joint.second_moment, SecondMoment::Band);
+        assert_eq!(joint.band, 4);
+        assert_eq!(joint.band_tol, JointOptions::default().band_tol);
+    }
+
+    /// Each rule refuses once, with the message that names the settings.
+    #[test]
+    fn every_rule_refuses_with_one_message_naming_the_settings() {
+        let joint = RunSpec {
+            filter: FilterKind::Joint,
+            ..RunSpec::default()
+        };
+        let cases = [
+            (
+                RunSpec {
+                    update: Update::Mixture,
+                    dropouts: Dropouts::Known,
+                    ..joint.clone()
+                },
+                SpecError::MixtureWithKnownDropouts,
+                "update = mixture needs dropouts = unknown: with known dropouts there is nothing to detect",
+            ),
+            (
+                RunSpec {
+                    loading: Some(1e-3),
+                    ..RunSpec::default()
+                },
+                SpecError::JointOnly(Setting::Loading),
+                "loading belongs to the joint filter (filter = joint)",
+            ),
+            (
+                RunSpec {
+                    filter: FilterKind::Centralized,
+                    second_moment: Some(SecondMoment::Band),
+                    ..RunSpec::default()
+                },
+                SpecError::JointOnly(Setting::SecondMomentBand),
+                "second_moment = band belongs to the joint filter (filter = joint)",
+            ),
+            (
+                RunSpec {
+                    second_moment: Some(SecondMoment::Paper),
+                    ..joint.clone()
+                },
+                SpecError::PaperMomentInJoint,
+                "second_moment = paper belongs to the distributed filter; the joint filter takes band, lifted or local",
+            ),
+            (
+                RunSpec {
+                    max_memory: Some(1 << 20),
+                    ..RunSpec::default()
+                },
+                SpecError::MaxMemoryWithoutSmooth,
+                "max_memory belongs to smooth = true",
+            ),
+            (
+                RunSpec {
+                    smooth: true,
+                    predicted: true,
+                    ..RunSpec::default()
+                },
+                SpecError::SmoothAndPredicted,
+                "smooth and predicted exclude each other",
+            ),
+            (
+                RunSpec {
+                    band_tol: Some(-1.0),
+                    ..joint.clone()
+                },
+                SpecError::NotFiniteNonNegative {
+                    setting: Setting::BandTol,
+                    value: -1.0,
+                },
+                "band_tol = -1: expected a finite number ≥ 0",
+            ),
+            (
+                RunSpec {
+                    loading: Some(f64::INFINITY),
+                    ..joint
+                },
+                SpecError::NotFiniteNonNegative {
+                    setting: Setting::Loading,
+                    value: f64::INFINITY,
+                },
+                "loading = inf: expected a finite number ≥ 0",
+            ),
+        ];
+        for (spec, error, message) in cases {
+            let refused = spec.check().unwrap_err();
+            assert_eq!(refused, error);
+            assert_eq!(refused.to_string(), message);
+        }
+    }
+}
