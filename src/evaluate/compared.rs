@@ -3,8 +3,10 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::EvaluateOptions;
 use crate::choice::{Choice, Variant};
-use crate::filter::Update;
+use crate::filter::{Dropouts, FilterKind, Update};
+use crate::run::RunSpec;
 
 /// A filter or smoother that `evaluate` compares (docs/theory.md §11). The declaration order
 /// is the tables' order; the smoothers (docs/theory.md §9) run with `--smooth`. Each of the
@@ -143,6 +145,36 @@ impl Compared {
             }
             _ => Update::Linear,
         }
+    }
+
+    /// The run this row makes: the filter of `estimate` it is, with its update and dropout
+    /// mode; a smoother's is the run of its filter with `smooth`. The joint rows take the
+    /// evaluation's band and loading, the centralized rows its `max_lifted`.
+    pub fn spec(self, opts: &EvaluateOptions) -> RunSpec {
+        let mut spec = RunSpec {
+            update: self.update(),
+            smooth: self.is_smoother(),
+            max_lifted: opts.max_lifted,
+            ..RunSpec::default()
+        };
+        match self.smooths().unwrap_or(self) {
+            Self::Joint | Self::JointMixture => {
+                spec.filter = FilterKind::Joint;
+                spec.band = Some(opts.band);
+                spec.loading = opts.loading;
+            }
+            Self::Centralized | Self::CentralizedMixture => spec.filter = FilterKind::Centralized,
+            Self::CentralizedKnown => {
+                spec.filter = FilterKind::Centralized;
+                spec.dropouts = Dropouts::Known;
+            }
+            // Told that every measurement arrived: the known-dropout filter on data without
+            // a lost element.
+            Self::Naive => spec.dropouts = Dropouts::Known,
+            Self::DistributedPaper => spec.paper = true,
+            _ => {}
+        }
+        spec
     }
 
     pub fn is_smoother(self) -> bool {

@@ -21,15 +21,13 @@ use crate::accuracy::{Accuracy, AccuracyReport, Detection, DetectionReport};
 use crate::error::{Error, Result};
 use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
-    CentralizedFilter, CentralizedSchedule, ChainFilter, Dropouts, JointFilter, JointOptions,
-    ScheduledCentralized, TwoStepOptions, Update, check_estimates, two_step,
+    CentralizedSchedule, ChainFilter, JointFilter, JointOptions, ScheduledCentralized, Update,
+    check_estimates,
 };
 use crate::inputs::InputStream;
 use crate::model::Model;
 use crate::simulate::simulate;
-use crate::smoother::{
-    CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherSchedule,
-};
+use crate::smoother::{Smoother, SmootherSchedule};
 
 /// Settings of an evaluation.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -173,7 +171,7 @@ fn smoother_schedule_bytes(
     let per_step = match smoother {
         Compared::CentralizedSmoother => (big_n * n).powi(2) + big_n * n * n,
         _ => {
-            let filter = JointFilter::new(model, joint_options(opts, Update::Linear))?;
+            let filter = JointFilter::new(model, joint_options(opts)?)?;
             let k = filter.band();
             let kappa = (k + 2 * filter.a_eff_half_width()).min(model.subsystems - 1) as f64;
             big_n * ((kappa + 2.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
@@ -182,21 +180,12 @@ fn smoother_schedule_bytes(
     Ok(8.0 * per_step * model.steps as f64)
 }
 
-fn joint_options(opts: &EvaluateOptions, update: Update) -> JointOptions {
-    JointOptions {
-        band: opts.band,
-        loading: opts.loading,
-        update,
-        ..JointOptions::default()
-    }
-}
-
-/// The two-step filter of the `distributed` rows.
-fn two_step_options(update: Update) -> TwoStepOptions {
-    TwoStepOptions {
-        update,
-        ..TwoStepOptions::default()
-    }
+/// The options of the `joint` row, checked.
+fn joint_options(opts: &EvaluateOptions) -> Result<JointOptions> {
+    let spec = Compared::Joint.spec(opts).check()?;
+    Ok(spec
+        .joint_options()
+        .expect("the joint row runs the joint filter"))
 }
 
 /// The filter `filter`, or for a smoother the filter it smooths (whose means it replays).
@@ -206,36 +195,11 @@ fn make_filter<'a>(
     opts: &EvaluateOptions,
     schedules: &'a Schedules<'a>,
 ) -> Result<Box<dyn ChainFilter + 'a>> {
-    let max_lifted = opts.max_lifted;
-    Ok(match filter.smooths().unwrap_or(filter) {
-        Compared::Centralized => match &schedules.centralized {
-            Some(s) => Box::new(ScheduledCentralized::new(s)),
-            None => Box::new(CentralizedFilter::new(model, false, max_lifted)?),
-        },
-        Compared::Joint => match &schedules.joint {
-            Some(s) => Box::new(ScheduledJoint::new(s)?),
-            None => Box::new(JointFilter::new(
-                model,
-                joint_options(opts, Update::Linear),
-            )?),
-        },
-        Compared::JointMixture => Box::new(JointFilter::new(
-            model,
-            joint_options(opts, Update::Mixture),
-        )?),
-        Compared::CentralizedMixture => {
-            Box::new(CentralizedFilter::new(model, false, max_lifted)?.with_mixture_update()?)
-        }
-        Compared::DistributedPaper => two_step(model, TwoStepOptions::paper())?,
-        Compared::CentralizedKnown => Box::new(CentralizedFilter::new(model, true, max_lifted)?),
-        Compared::Naive => two_step(
-            model,
-            TwoStepOptions {
-                dropouts: Dropouts::Known,
-                ..TwoStepOptions::default()
-            },
-        )?,
-        filter => two_step(model, two_step_options(filter.update()))?,
+    let filter = filter.smooths().unwrap_or(filter);
+    Ok(match (filter, &schedules.centralized, &schedules.joint) {
+        (Compared::Centralized, Some(s), _) => Box::new(ScheduledCentralized::new(s)),
+        (Compared::Joint, _, Some(s)) => Box::new(ScheduledJoint::new(s)?),
+        _ => filter.spec(opts).check()?.build_filter(model)?,
     })
 }
 
@@ -280,22 +244,7 @@ fn make_smoother<'a>(
     smoother: Compared,
     opts: &EvaluateOptions,
 ) -> Result<Box<dyn Smoother + 'a>> {
-    let update = smoother.update();
-    Ok(match smoother.smooths() {
-        Some(Compared::Joint | Compared::JointMixture) => {
-            Box::new(JointSmoother::new(model, joint_options(opts, update))?)
-        }
-        Some(Compared::Centralized) => {
-            Box::new(CentralizedSmoother::new(model, false, opts.max_lifted)?)
-        }
-        Some(Compared::CentralizedMixture) => Box::new(
-            CentralizedSmoother::new(model, false, opts.max_lifted)?.with_mixture_update()?,
-        ),
-        _ => Box::new(DistributedSmoother::new(
-            model,
-            two_step(model, two_step_options(update))?,
-        )),
-    })
+    smoother.spec(opts).check()?.build_smoother(model)
 }
 
 /// The sums of one filter over one run or several.
@@ -472,7 +421,7 @@ pub fn evaluate(
             "--true-p: expected a probability in [0, 1], found {p}"
         )));
     }
-    joint_options(&opts, Update::Linear).check()?;
+    joint_options(&opts)?;
     let truth = opts.true_p.map(|p| model.with_arrival_probability(p));
     let truth = truth.as_ref().unwrap_or(model);
     let d = model.dims;
@@ -533,7 +482,7 @@ pub fn evaluate(
             .transpose()?,
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| JointSchedule::new(model, joint_options(&opts, Update::Linear), &u))
+            .then(|| JointSchedule::new(model, joint_options(&opts)?, &u))
             .transpose()?,
         smoothers: Vec::new(),
     };

@@ -250,6 +250,11 @@ impl CheckedSpec {
         self.max_memory
     }
 
+    /// The joint filter's options (`filter = joint` only).
+    pub fn joint_options(&self) -> Option<JointOptions> {
+        self.joint
+    }
+
     /// The smoother, for its memory estimate.
     pub fn smoother_kind(&self) -> SmootherKind {
         match (self.filter, self.joint) {
