@@ -46,6 +46,10 @@ pub enum Error {
     #[error(transparent)]
     Spec(#[from] crate::run::SpecError),
 
+    /// A run cannot go on for a reason its settings name ([`crate::run::RunError`]).
+    #[error(transparent)]
+    Run(#[from] crate::run::RunError),
+
     /// A command-line argument is unusable.
     #[error("{0}")]
     Usage(String),

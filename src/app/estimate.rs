@@ -6,36 +6,26 @@ use std::path::PathBuf;
 use anyhow::Result;
 use sha2::Digest;
 
-use sisfilt::accuracy::{Accuracy, AccuracyReport, Detection};
+use sisfilt::accuracy::AccuracyReport;
 use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
-use sisfilt::filter::{
-    ChainFilter, Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update, check_estimates,
-};
+use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use sisfilt::inputs::{InputStream, open_csv};
-use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
+use sisfilt::interconnect::SolverKind;
 use sisfilt::io::estimates::{
-    BackgroundWriter, ConfigRef, EstimateKind, EstimatesColumns, EstimatesMetadata,
-    EstimatesSummary, EstimatesWriter, Format,
+    BackgroundWriter, ConfigRef, EstimateKind, EstimatesMetadata, EstimatesSummary,
+    EstimatesWriter, Format,
 };
-use sisfilt::io::{Output, Role, RunRecord, StepLayout, StepReader, check_files, folder_of};
-use sisfilt::lifted::spectral_radius;
+use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
 use sisfilt::model::Model;
-use sisfilt::run::{CheckedSpec, RunSpec};
-use sisfilt::smoother::{Smoother, human_bytes, memory_bytes};
+use sisfilt::run::{
+    CheckedSpec, EstimateSink, FileSource, ReaderTruth, RunSpec, StepEstimates, Timings,
+    TruthSource,
+};
 
 use super::choice::choice;
 use super::in_flag_words;
-
-/// Power-iteration steps of the quick stability warning (`check` takes more).
-const POWER_STEPS: usize = 400;
-/// Above this many lifted states `estimate` skips its stability check (`check` still does it).
-const STABILITY_CHECK_MAX: usize = 100_000;
-
-/// Chains at least this long parse the measurement and input files of a step in parallel
-/// (shorter steps cost less than waking a thread).
-const PARALLEL_READ_MIN: usize = 512;
 
 #[derive(Debug, clap::Args)]
 pub struct EstimateArgs {
@@ -259,81 +249,73 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         .transpose()?;
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;
-
-    warn_about(&spec, &model)?;
-
     let metadata = metadata(args, &spec, &src, inputs_file.as_deref(), &model);
     let out_name = args.out.display().to_string();
-    if spec.output() == EstimateKind::Smoothed {
-        let smoother = spec.build_smoother(&model)?;
-        let columns = EstimatesColumns {
-            n,
-            cross: spec.cross_band(&model),
-            arrival: spec.update() == Update::Mixture,
-        };
-        let writer = EstimatesWriter::new(output, args.format(), columns, Some(&metadata))
-            .map_err(|e| Error::io(&out_name, e))?;
-        return run_smoother(
-            args,
-            &model,
-            smoother,
-            &spec,
-            FilterIo {
-                meas,
-                inputs,
-                truth,
-                writer,
-            },
-        );
-    }
-    let filter = spec.build_filter(&model)?;
-    let columns = EstimatesColumns {
-        n,
-        cross: filter.covariance_band(false).map_or(0, |(_, k)| k),
-        arrival: filter.arrival().is_some(),
-    };
-    let writer = EstimatesWriter::new(output, args.format(), columns, Some(&metadata))
+    let writer = EstimatesWriter::new(output, args.format(), spec.columns(&model), Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?;
-    run_filter(
-        args,
+    let mut sink = WriterSink {
+        writer: BackgroundWriter::new(writer, big_n),
+        out_name,
+    };
+    let mut source = FileSource::new(meas, inputs);
+    let mut truth = truth.map(ReaderTruth);
+    let report = sisfilt::run::stream(
         &model,
-        filter,
-        spec.output() == EstimateKind::Predicted,
-        FilterIo {
-            meas,
-            inputs,
-            truth,
-            writer,
-        },
-        started,
+        &spec,
+        &mut source,
+        truth.as_mut().map(|t| t as &mut dyn TruthSource),
+        &mut sink,
     )
-}
-
-/// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
-/// whose covariance cannot be trusted, an unstable chain.
-fn warn_about(spec: &CheckedSpec, model: &Model) -> Result<()> {
-    if spec.filter_kind() == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
-        warn(
-            "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)",
-        );
-        if spec.output() == EstimateKind::Smoothed {
-            warn(
-                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy",
-            );
-        }
-    }
-    if spec.dropouts() == Dropouts::Unknown
-        && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
-    {
-        let rho = spectral_radius(model, 1, POWER_STEPS)?;
-        if rho.value >= 1.0 {
-            warn(format!(
-                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
-                rho.value
+    .map_err(in_flag_words)?;
+    let smoothed = spec.output() == EstimateKind::Smoothed;
+    let steps = report.steps;
+    if !smoothed {
+        let elapsed = started.elapsed().as_secs_f64();
+        info(format!(
+            "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
+            (steps * big_n) as f64 / elapsed.max(1e-9)
+        ));
+        if let Some(loglik) = report.summary.loglik {
+            info(format!(
+                "log-likelihood of the measurements: {loglik:.6e} over {steps} steps"
             ));
         }
     }
+    report_summary(&report.summary);
+    let mut timings = report.timings;
+    let WriterSink { writer, out_name } = sink;
+    let busy = timings.write(|| -> Result<f64> {
+        let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
+        writer.commit(&report.summary)?;
+        Ok(busy)
+    })?;
+    if args.timings && !smoothed {
+        eprintln!(
+            "timings: {}; the writer thread was busy {:.3} s",
+            timings_summary(&timings, started.elapsed(), steps * big_n),
+            busy
+        );
+    }
     Ok(())
+}
+
+/// The estimates file of `estimate`, filled by a thread of its own as the run goes; the
+/// run's notes are warnings.
+struct WriterSink {
+    writer: BackgroundWriter,
+    out_name: String,
+}
+
+impl EstimateSink for WriterSink {
+    fn step(&mut self, step: &StepEstimates<'_>) -> sisfilt::Result<()> {
+        self.writer
+            .write_step(step.t, step.x, step.p, step.band, step.arrival)
+            .map_err(|e| Error::io(&self.out_name, e))
+    }
+
+    fn note(&mut self, note: &str) {
+        warn(note);
+    }
 }
 
 /// The metadata at the head of an estimates JSON file.
@@ -358,329 +340,19 @@ fn metadata(
     }
 }
 
-/// The files of a run: measurements, inputs, truth (with `--truth`) and the estimates.
-struct FilterIo<R: std::io::Read, T: std::io::Read> {
-    meas: StepReader<R>,
-    inputs: InputStream,
-    truth: Option<StepReader<T>>,
-    writer: EstimatesWriter,
-}
-
-/// `estimate` without `--smooth`: each step is read, filtered, handed to the writer thread
-/// and scored against the truth; `predicted` writes `x̂(t+1|t)`, `T(t+1)` on row `t`.
-fn run_filter<R: std::io::Read + Send, T: std::io::Read>(
-    args: &EstimateArgs,
-    model: &Model,
-    mut filter: Box<dyn ChainFilter + '_>,
-    predicted: bool,
-    io: FilterIo<R, T>,
-    started: std::time::Instant,
-) -> Result<()> {
-    let FilterIo {
-        mut meas,
-        mut inputs,
-        mut truth,
-        writer,
-    } = io;
-    let (n, big_n) = (model.dims.n, model.subsystems);
-    let out_name = args.out.display().to_string();
-    let mut writer = BackgroundWriter::new(writer, big_n);
-    let mut y = vec![0.0; meas.row_values()];
-    let mut u = vec![0.0; big_n * model.dims.m];
-    let mut x_true = vec![0.0; big_n * (n + 1)];
-    let mut scores = Scores::new(n);
-    let mut loglik = 0.0;
-    // With --predicted, row t is scored against the truth at t + 1.
-    let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
-    let mut warned_transfer = false;
-    let mut steps = 0;
-    let mut clock = PhaseClock::default();
-    loop {
-        // The measurement and input files are parsed side by side, on long chains.
-        let next_t = meas.next_t();
-        let (t, inputs_read) = clock.read(|| {
-            if big_n >= PARALLEL_READ_MIN {
-                rayon::join(|| meas.read_step(&mut y), || inputs.next(next_t, &mut u))
-            } else {
-                (meas.read_step(&mut y), inputs.next(next_t, &mut u))
-            }
-        });
-        let Some(t) = t? else {
-            // The inputs were read one step ahead of the measurements' end.
-            if let (Ok(()), Some(e)) = (&inputs_read, inputs.read_beyond(steps)) {
-                return Err(e.into());
-            }
-            break;
-        };
-        inputs_read?;
-        clock.filter(|| filter.step(&y, &u))?;
-        loglik += filter.log_likelihood().unwrap_or(0.0);
-        if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
-            warned_transfer = true;
-            warn(format!(
-                "the transfer solver's estimated relative error is {:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use --solver banded",
-                filter.solver_error_estimate()
-            ));
-        }
-        let (x_hat, p_hat) = if predicted {
-            filter.predicted()
-        } else {
-            filter.filtered()
-        };
-        check_estimates(t, n, x_hat, p_hat)?;
-        let band = filter.covariance_band(predicted).map(|(b, _)| b);
-        clock
-            .write(|| writer.write_step(t, x_hat, p_hat, band, filter.arrival()))
-            .map_err(|e| Error::io(&out_name, e))?;
-        if let Some(truth) = truth.as_mut() {
-            clock.read(|| read_truth_step(truth, t, &mut x_true))?;
-            let scored = match (predicted, t > 1) {
-                (false, _) => Some((x_hat, p_hat)),
-                (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
-                (true, false) => None,
-            };
-            // π(t, i) is scored against γ(t, i), whichever estimate row t holds.
-            scores.add(&x_true, scored, filter.arrival());
-            if predicted {
-                prev_x.copy_from_slice(x_hat);
-                prev_p.copy_from_slice(p_hat);
-            }
-        }
-        steps = t;
-    }
-    finish_inputs(meas.name(), steps, inputs)?;
-    let elapsed = started.elapsed().as_secs_f64();
-    info(format!(
-        "estimate: {steps} steps × {big_n} subsystems in {elapsed:.3} s ({:.3e} subsystem-steps/s)",
-        (steps * big_n) as f64 / elapsed.max(1e-9)
-    ));
-    let summary = EstimatesSummary {
-        loglik: filter.log_likelihood().map(|_| loglik),
-        ..scores.summary(truth.is_some(), filter.arrival().is_some())?
-    };
-    if let Some(loglik) = summary.loglik {
-        info(format!(
-            "log-likelihood of the measurements: {loglik:.6e} over {steps} steps"
-        ));
-    }
-    report_summary(&summary);
-    let busy = clock.write(|| -> Result<f64> {
-        let (writer, busy) = writer.finish().map_err(|e| Error::io(&out_name, e))?;
-        writer.commit(&summary)?;
-        Ok(busy)
-    })?;
-    if args.timings {
-        let rows = steps * big_n;
-        eprintln!(
-            "timings: {}; the writer thread was busy {:.3} s",
-            clock.summary(started.elapsed(), rows),
-            busy
-        );
-    }
-    Ok(())
-}
-
-/// `estimate --smooth`: the forward pass over the whole file (refused politely once its
-/// stored steps exceed `--max-memory`), the backward pass, then every row.
-fn run_smoother<R: std::io::Read, T: std::io::Read>(
-    args: &EstimateArgs,
-    model: &Model,
-    mut smoother: Box<dyn Smoother + '_>,
-    spec: &CheckedSpec,
-    io: FilterIo<R, T>,
-) -> Result<()> {
-    let FilterIo {
-        mut meas,
-        mut inputs,
-        mut truth,
-        mut writer,
-    } = io;
-    let (n, big_n) = (model.dims.n, model.subsystems);
-    let kind = spec.smoother_kind();
-    let limit = spec.max_memory();
-    let mut y = vec![0.0; meas.row_values()];
-    let mut u = vec![0.0; big_n * model.dims.m];
-    let mut truth_rows: Vec<Vec<f64>> = Vec::new();
-    // The forward pass's π of every step (the mixture update): the smoother keeps them.
-    let mut arrival: Vec<Vec<f64>> = Vec::new();
-    let mut steps = 0;
-    while let Some(t) = meas.read_step(&mut y)? {
-        let need = memory_bytes(model, kind, t);
-        if need > limit {
-            return Err(Error::Usage(format!(
-                "--smooth: the stored forward pass needs {} by t = {t} ({need} bytes), above --max-memory {} ({limit} bytes); raise --max-memory, or smooth a shorter file",
-                human_bytes(need),
-                human_bytes(limit)
-            ))
-            .into());
-        }
-        inputs.next(t, &mut u)?;
-        smoother.step(&y, &u)?;
-        if let Some(pi) = smoother.arrival() {
-            arrival.push(pi.to_vec());
-        }
-        if let Some(truth) = truth.as_mut() {
-            let mut row = vec![0.0; big_n * (n + 1)];
-            read_truth_step(truth, t, &mut row)?;
-            truth_rows.push(row);
-        }
-        steps = t;
-    }
-    finish_inputs(meas.name(), steps, inputs)?;
-    let smoothed = smoother.finish()?;
-    for note in &smoothed.notes {
-        warn(note);
-    }
-    let out_name = args.out.display().to_string();
-    let mut scores = Scores::new(n);
-    for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
-        check_estimates(idx + 1, n, x, p)?;
-        let band = smoothed.bands.as_ref().map(|b| &b[idx]);
-        let pi = arrival.get(idx).map(Vec::as_slice);
-        writer
-            .write_step(idx + 1, x, p, band, pi)
-            .map_err(|e| Error::io(&out_name, e))?;
-        if let Some(row) = truth_rows.get(idx) {
-            scores.add(row, Some((x, p)), pi);
-        }
-    }
-    let summary = scores.summary(truth.is_some(), !arrival.is_empty())?;
-    report_summary(&summary);
-    Ok(writer.commit(&summary)?)
-}
-
-/// The figures of a run scored against `--truth`: the accuracy of the estimates
-/// (docs/theory.md §11) and how well `π` detects the lost measurements (§10).
-struct Scores {
-    n: usize,
-    accuracy: Accuracy,
-    detection: Detection,
-}
-
-impl Scores {
-    fn new(n: usize) -> Self {
-        Self {
-            n,
-            accuracy: Accuracy::new(n),
-            detection: Detection::default(),
-        }
-    }
-
-    /// Scores one step against its truth (`N (n + 1)` values: each subsystem's states, then
-    /// `γ`): the estimates `(x̂, P)` (`N·n` and `N·n²`), when given, and `π`, when given.
-    fn add(&mut self, truth: &[f64], estimates: Option<(&[f64], &[f64])>, arrival: Option<&[f64]>) {
-        let n = self.n;
-        for (i, row) in truth.chunks_exact(n + 1).enumerate() {
-            if let Some((x, p)) = estimates {
-                self.accuracy.add(
-                    &row[..n],
-                    &x[i * n..(i + 1) * n],
-                    &p[i * n * n..(i + 1) * n * n],
-                );
-            }
-            if let Some(pi) = arrival {
-                self.detection.add(pi[i], row[n]);
-            }
-        }
-    }
-
-    /// The summary of a run: the accuracy with `--truth`, the detection with `--truth` and
-    /// `π`. Not one scored term is an error, since figures over nothing would read as a
-    /// perfect score.
-    fn summary(&self, truth: bool, arrival: bool) -> Result<EstimatesSummary> {
-        if !truth {
-            return Ok(EstimatesSummary::default());
-        }
-        let accuracy = self.accuracy.report();
-        if accuracy.terms == 0 {
-            return Err(Error::Usage(
-                "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
-            )
-            .into());
-        }
-        Ok(EstimatesSummary {
-            accuracy: Some(accuracy),
-            detection: arrival.then(|| self.detection.report()),
-            loglik: None,
-        })
-    }
-}
-
-/// Reads the truth of step `t` into `out`; a truth file that ends before the measurements is
-/// bad input.
-fn read_truth_step<R: std::io::Read>(
-    truth: &mut StepReader<R>,
-    t: usize,
-    out: &mut [f64],
-) -> Result<()> {
-    if truth.read_step(out)?.is_none() {
-        return Err(Error::File {
-            file: truth.name().to_string(),
-            msg: format!(
-                "ends before t = {t}; the truth must cover every step of the measurements"
-            ),
-        }
-        .into());
-    }
-    Ok(())
-}
-
-/// Ends a run over `steps` measured steps: an empty measurement file is bad input, and an
-/// inputs file must end where the measurements do.
-fn finish_inputs(meas_name: &str, steps: usize, inputs: InputStream) -> Result<()> {
-    if steps == 0 {
-        return Err(Error::File {
-            file: meas_name.to_string(),
-            msg: "holds no measurement rows".into(),
-        }
-        .into());
-    }
-    inputs.finish(steps)?;
-    Ok(())
-}
-
-/// Wall-clock time spent in each phase of `estimate` (`--timings`).
-#[derive(Default)]
-struct PhaseClock {
-    read: std::time::Duration,
-    filter: std::time::Duration,
-    write: std::time::Duration,
-}
-
-impl PhaseClock {
-    fn time<R>(slot: &mut std::time::Duration, f: impl FnOnce() -> R) -> R {
-        let start = std::time::Instant::now();
-        let r = f();
-        *slot += start.elapsed();
-        r
-    }
-
-    fn read<R>(&mut self, f: impl FnOnce() -> R) -> R {
-        Self::time(&mut self.read, f)
-    }
-
-    fn filter<R>(&mut self, f: impl FnOnce() -> R) -> R {
-        Self::time(&mut self.filter, f)
-    }
-
-    fn write<R>(&mut self, f: impl FnOnce() -> R) -> R {
-        Self::time(&mut self.write, f)
-    }
-
-    /// `read R s, filter F s, write W s, other O s, total X s, K rows, Y rows/s`.
-    fn summary(&self, total: std::time::Duration, rows: usize) -> String {
-        let secs = |d: std::time::Duration| d.as_secs_f64();
-        let other = secs(total) - secs(self.read) - secs(self.filter) - secs(self.write);
-        format!(
-            "read {:.3} s, filter {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
-            secs(self.read),
-            secs(self.filter),
-            secs(self.write),
-            other.max(0.0),
-            secs(total),
-            rows as f64 / secs(total).max(1e-9)
-        )
-    }
+/// `read R s, filter F s, write W s, other O s, total X s, K rows, Y rows/s` (`--timings`).
+fn timings_summary(timings: &Timings, total: std::time::Duration, rows: usize) -> String {
+    let secs = |d: std::time::Duration| d.as_secs_f64();
+    let other = secs(total) - secs(timings.read) - secs(timings.filter) - secs(timings.write);
+    format!(
+        "read {:.3} s, filter {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
+        secs(timings.read),
+        secs(timings.filter),
+        secs(timings.write),
+        other.max(0.0),
+        secs(total),
+        rows as f64 / secs(total).max(1e-9)
+    )
 }
 
 /// Prints the figures of a run scored against the truth on standard error: the accuracy,

@@ -25,7 +25,8 @@ use sisfilt::error::Error;
 use sisfilt::inputs::InputStream;
 use sisfilt::io::{Output, Role};
 use sisfilt::model::Model;
-use sisfilt::run::{Setting, SpecError};
+use sisfilt::run::{RunError, Setting, SpecError};
+use sisfilt::smoother::human_bytes;
 
 /// Distributed state estimation for chains of interconnected subsystems whose sensors drop
 /// measurements at random (two-step filter of Bai Li's paper, with the corrections of docs/theory.md §6).
@@ -133,30 +134,32 @@ fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
     read
 }
 
-/// A library error in the command line's words: a [`SpecError`] names the flags of its
-/// settings; every other error is left as it is.
+/// A library error in the command line's words: a [`SpecError`] or a [`RunError`] names the
+/// flags of its settings; every other error is left as it is.
 fn in_flag_words(e: impl Into<Error>) -> Error {
-    let e = match e.into() {
-        Error::Spec(e) => e,
-        other => return other,
-    };
     let flag = |setting: Setting| match setting {
         Setting::Band => "--band",
         Setting::BandTol => "--band-tol",
         Setting::Loading => "--loading",
         Setting::SecondMomentBand => "--second-moment band",
-        Setting::MaxMemory => "--max-memory",
     };
-    Error::Usage(match e {
-        SpecError::MixtureWithKnownDropouts => "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
-        SpecError::JointOnly(setting) => {
+    Error::Usage(match e.into() {
+        Error::Spec(SpecError::MixtureWithKnownDropouts) => "--update mixture detects lost measurements; with --dropouts known there is nothing to detect: leave one of them out".into(),
+        Error::Spec(SpecError::JointOnly(setting)) => {
             format!("{} belongs to the joint filter; add --filter joint", flag(setting))
         }
-        SpecError::PaperMomentInJoint => "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
-        SpecError::MaxMemoryWithoutSmooth => "--max-memory belongs to --smooth".into(),
-        SpecError::SmoothAndPredicted => "--smooth and --predicted exclude each other".into(),
-        SpecError::NotFiniteNonNegative { setting, value } => {
+        Error::Spec(SpecError::PaperMomentInJoint) => "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
+        Error::Spec(SpecError::MaxMemoryWithoutSmooth) => "--max-memory belongs to --smooth".into(),
+        Error::Spec(SpecError::SmoothAndPredicted) => "--smooth and --predicted exclude each other".into(),
+        Error::Spec(SpecError::NotFiniteNonNegative { setting, value }) => {
             format!("{} {value}: expected a finite number ≥ 0", flag(setting))
         }
+        Error::Run(RunError::OverMaxMemory { t, need, limit }) => format!(
+            "--smooth: the stored forward pass needs {} by t = {t} ({need} bytes), above --max-memory {} ({limit} bytes); raise --max-memory, or smooth a shorter file",
+            human_bytes(need),
+            human_bytes(limit)
+        ),
+        Error::Run(RunError::NothingScored) => "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
+        other => return other,
     })
 }

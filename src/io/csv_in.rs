@@ -165,6 +165,11 @@ impl<R: Read> StepReader<R> {
         &self.name
     }
 
+    /// The chain length `N`: the rows of one time step.
+    pub fn subsystems(&self) -> usize {
+        self.subsystems
+    }
+
     /// The number of values [`StepReader::read_step`] fills per time step.
     pub fn row_values(&self) -> usize {
         self.subsystems * (self.header.len() - 2)

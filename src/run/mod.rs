@@ -1,6 +1,405 @@
 //! A whole run, as every front end makes it (docs/theory.md §13): a [`RunSpec`] checked once
-//! into a [`CheckedSpec`], which builds the filter or smoother it describes.
+//! into a [`CheckedSpec`], which builds the filter or smoother it describes; then the run
+//! itself, which takes the measurements and inputs step by step from a [`StepSource`], scores
+//! the estimates against a truth when one is given, and hands each step's estimates to an
+//! [`EstimateSink`] as soon as they are known.
+//!
+//! - [`stream`]: the run over any source, into any sink, with memory flat in `T` (but for the
+//!   smoother, which keeps its forward pass);
+//! - [`estimate`]: the run over arrays in memory, into arrays (a thin layer over [`stream`]).
 
+mod score;
+mod source;
 pub mod spec;
 
+use std::time::{Duration, Instant};
+
+use crate::error::Result;
+use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
+use crate::interconnect::TRANSFER_ERROR_WARNING;
+use crate::io::estimates::{EstimateKind, EstimatesSummary};
+use crate::lifted::spectral_radius;
+use crate::linalg::band::SymBand;
+use crate::model::Model;
+use crate::smoother::{Smoother, human_bytes, memory_bytes};
+
+use score::Scores;
+pub use source::{ArraySource, FileSource, ReaderTruth, SliceTruth, StepSource, TruthSource};
 pub use spec::{CheckedSpec, RunSpec, Setting, SpecError, check_update};
+
+/// Power-iteration steps of the quick stability warning (`check` takes more).
+const POWER_STEPS: usize = 400;
+/// Above this many lifted states a run skips its stability check (`check` still does it).
+const STABILITY_CHECK_MAX: usize = 100_000;
+
+/// A run that cannot go on for a reason its settings name (exit 2 on the command line).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RunError {
+    /// The smoother's stored forward pass outgrew `max_memory`.
+    #[error(
+        "smooth: the stored forward pass needs {} by t = {t} ({need} bytes), above max_memory {} ({limit} bytes); raise max_memory, or smooth a shorter file",
+        human_bytes(*need),
+        human_bytes(*limit)
+    )]
+    OverMaxMemory { t: usize, need: u64, limit: u64 },
+    /// A truth was given, but no estimate could be scored against it.
+    #[error(
+        "truth: no step could be scored (with predicted, row t is scored against the truth at t + 1, and the measurements hold one step)"
+    )]
+    NothingScored,
+}
+
+/// One step's estimates, as a run hands them to its [`EstimateSink`]: `x̂` (`N·n`), the
+/// diagonal blocks of `P` (`N·n²`, column-major blocks), the covariance band when the filter
+/// keeps one (the joint filter) and `π(t, ·)` with the mixture update.
+#[derive(Clone, Copy)]
+pub struct StepEstimates<'a> {
+    pub t: usize,
+    pub x: &'a [f64],
+    pub p: &'a [f64],
+    pub band: Option<&'a SymBand>,
+    pub arrival: Option<&'a [f64]>,
+}
+
+/// Where a run's estimates go, step after step, and what the user should know.
+pub trait EstimateSink {
+    /// The estimates of one step; steps come in order.
+    fn step(&mut self, step: &StepEstimates<'_>) -> Result<()>;
+    /// A note for the user (a warning on a command line), as soon as it is known.
+    fn note(&mut self, note: &str);
+}
+
+/// Wall-clock time a run spent in each phase: reading the inputs (source and truth), filtering
+/// and handing the estimates to the sink.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Timings {
+    pub read: Duration,
+    pub filter: Duration,
+    pub write: Duration,
+}
+
+impl Timings {
+    fn time<R>(slot: &mut Duration, f: impl FnOnce() -> R) -> R {
+        let start = Instant::now();
+        let r = f();
+        *slot += start.elapsed();
+        r
+    }
+
+    fn read<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.read, f)
+    }
+
+    fn filter<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.filter, f)
+    }
+
+    /// Times `f` as time spent handing estimates on (a front end adds its own writing).
+    pub fn write<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.write, f)
+    }
+}
+
+/// What a run found besides its estimates.
+#[derive(Debug, Clone)]
+pub struct RunReport {
+    /// The steps run, `1..=steps`.
+    pub steps: usize,
+    /// Accuracy and detection against the truth, when one was given; the log-likelihood of
+    /// the measurements, when the filter has one.
+    pub summary: EstimatesSummary,
+    pub timings: Timings,
+}
+
+/// Runs `spec` on `model` over the steps of `source`, scoring against `truth` when given, and
+/// hands each step's estimates to `sink`: as each step is filtered, or with
+/// `smooth` after the backward pass (docs/theory.md §9), which keeps the forward pass of every
+/// step (refused once it would exceed `max_memory`). With `predicted`, row `t` holds
+/// `x̂(t+1|t)`, `T(t+1)` and is scored against the truth at `t + 1`. The warnings a run
+/// deserves (an untrustworthy covariance, an unstable chain, an inaccurate transfer solver,
+/// what the smoother had to do) go to [`EstimateSink::note`].
+pub fn stream(
+    model: &Model,
+    spec: &CheckedSpec,
+    source: &mut dyn StepSource,
+    truth: Option<&mut dyn TruthSource>,
+    sink: &mut dyn EstimateSink,
+) -> Result<RunReport> {
+    for note in advice(spec, model)? {
+        sink.note(&note);
+    }
+    if spec.output() == EstimateKind::Smoothed {
+        let smoother = spec.build_smoother(model)?;
+        return run_smoother(model, spec, smoother, source, truth, sink);
+    }
+    let filter = spec.build_filter(model)?;
+    let predicted = spec.output() == EstimateKind::Predicted;
+    run_filter(model, filter, predicted, source, truth, sink)
+}
+
+/// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
+/// whose covariance cannot be trusted, an unstable chain.
+pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<String>> {
+    let mut notes = Vec::new();
+    if spec.filter_kind() == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
+        notes.push("Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)".to_string());
+        if spec.output() == EstimateKind::Smoothed {
+            notes.push("Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy".to_string());
+        }
+    }
+    if spec.dropouts() == Dropouts::Unknown
+        && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
+    {
+        let rho = spectral_radius(model, 1, POWER_STEPS)?;
+        if rho.value >= 1.0 {
+            notes.push(format!(
+                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
+                rho.value
+            ));
+        }
+    }
+    Ok(notes)
+}
+
+/// The filtered (or predicted) run: each step is read, filtered, handed on and scored.
+fn run_filter(
+    model: &Model,
+    mut filter: Box<dyn ChainFilter + '_>,
+    predicted: bool,
+    source: &mut dyn StepSource,
+    mut truth: Option<&mut dyn TruthSource>,
+    sink: &mut dyn EstimateSink,
+) -> Result<RunReport> {
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let mut y = vec![0.0; big_n * model.dims.q];
+    let mut u = vec![0.0; big_n * model.dims.m];
+    let mut x_true = vec![0.0; big_n * (n + 1)];
+    let mut scores = Scores::new(n);
+    let mut loglik = 0.0;
+    // With predicted, row t is scored against the truth at t + 1.
+    let (mut prev_x, mut prev_p) = (vec![0.0; big_n * n], vec![0.0; big_n * n * n]);
+    let mut warned_transfer = false;
+    let mut steps = 0;
+    let mut timings = Timings::default();
+    while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
+        timings.filter(|| filter.step(&y, &u))?;
+        loglik += filter.log_likelihood().unwrap_or(0.0);
+        if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
+            warned_transfer = true;
+            sink.note(&format!(
+                "the transfer solver's estimated relative error is {:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use --solver banded",
+                filter.solver_error_estimate()
+            ));
+        }
+        let (x, p) = if predicted {
+            filter.predicted()
+        } else {
+            filter.filtered()
+        };
+        check_estimates(t, n, x, p)?;
+        let step = StepEstimates {
+            t,
+            x,
+            p,
+            band: filter.covariance_band(predicted).map(|(b, _)| b),
+            arrival: filter.arrival(),
+        };
+        timings.write(|| sink.step(&step))?;
+        if let Some(truth) = truth.as_deref_mut() {
+            timings.read(|| truth.read_truth(t, &mut x_true))?;
+            let scored = match (predicted, t > 1) {
+                (false, _) => Some((x, p)),
+                (true, true) => Some((prev_x.as_slice(), prev_p.as_slice())),
+                (true, false) => None,
+            };
+            // π(t, i) is scored against γ(t, i), whichever estimate row t holds.
+            scores.add(&x_true, scored, filter.arrival());
+            if predicted {
+                prev_x.copy_from_slice(x);
+                prev_p.copy_from_slice(p);
+            }
+        }
+        steps = t;
+    }
+    timings.read(|| source.finish(steps))?;
+    let summary = EstimatesSummary {
+        loglik: filter.log_likelihood().map(|_| loglik),
+        ..scores.summary(truth.is_some(), filter.arrival().is_some())?
+    };
+    Ok(RunReport {
+        steps,
+        summary,
+        timings,
+    })
+}
+
+/// The smoothed run: the forward pass over every step (refused once its stored steps exceed
+/// `max_memory`), the backward pass, then every row.
+fn run_smoother(
+    model: &Model,
+    spec: &CheckedSpec,
+    mut smoother: Box<dyn Smoother + '_>,
+    source: &mut dyn StepSource,
+    mut truth: Option<&mut dyn TruthSource>,
+    sink: &mut dyn EstimateSink,
+) -> Result<RunReport> {
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let (kind, limit) = (spec.smoother_kind(), spec.max_memory());
+    let mut y = vec![0.0; big_n * model.dims.q];
+    let mut u = vec![0.0; big_n * model.dims.m];
+    let mut truth_rows: Vec<Vec<f64>> = Vec::new();
+    // The forward pass's π of every step (the mixture update): the smoother keeps them.
+    let mut arrival: Vec<Vec<f64>> = Vec::new();
+    let mut steps = 0;
+    let mut timings = Timings::default();
+    while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
+        let need = memory_bytes(model, kind, t);
+        if need > limit {
+            return Err(RunError::OverMaxMemory { t, need, limit }.into());
+        }
+        timings.filter(|| smoother.step(&y, &u))?;
+        if let Some(pi) = smoother.arrival() {
+            arrival.push(pi.to_vec());
+        }
+        if let Some(truth) = truth.as_deref_mut() {
+            let mut row = vec![0.0; big_n * (n + 1)];
+            timings.read(|| truth.read_truth(t, &mut row))?;
+            truth_rows.push(row);
+        }
+        steps = t;
+    }
+    timings.read(|| source.finish(steps))?;
+    let smoothed = timings.filter(|| smoother.finish())?;
+    for note in &smoothed.notes {
+        sink.note(note);
+    }
+    let mut scores = Scores::new(n);
+    for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
+        check_estimates(idx + 1, n, x, p)?;
+        let step = StepEstimates {
+            t: idx + 1,
+            x,
+            p,
+            band: smoothed.bands.as_ref().map(|b| &b[idx]),
+            arrival: arrival.get(idx).map(Vec::as_slice),
+        };
+        timings.write(|| sink.step(&step))?;
+        if let Some(row) = truth_rows.get(idx) {
+            scores.add(row, Some((x, p)), step.arrival);
+        }
+    }
+    Ok(RunReport {
+        steps,
+        summary: scores.summary(truth.is_some(), !arrival.is_empty())?,
+        timings,
+    })
+}
+
+/// The estimates of a whole run, in memory ([`estimate`]): `x[t][i][·]` flattened as
+/// `x[((t − 1) N + i − 1) n + k]`, and so on.
+#[derive(Debug, Clone)]
+pub struct Estimates {
+    /// `T × N × n` values of `x̂`.
+    pub x: Vec<f64>,
+    /// `T × N × n × n` values: the diagonal blocks of `P`, each column-major.
+    pub p: Vec<f64>,
+    /// `T × N` values of `π(t, i)`, with the mixture update.
+    pub arrival: Option<Vec<f64>>,
+    /// The steps, the log-likelihood, accuracy and detection against the truth.
+    pub report: RunReport,
+    /// What the user should know (the notes of [`stream`]).
+    pub notes: Vec<String>,
+}
+
+/// Gathers the steps of a run into [`Estimates`].
+#[derive(Default)]
+struct Collect {
+    x: Vec<f64>,
+    p: Vec<f64>,
+    arrival: Option<Vec<f64>>,
+    notes: Vec<String>,
+}
+
+impl EstimateSink for Collect {
+    fn step(&mut self, step: &StepEstimates<'_>) -> Result<()> {
+        self.x.extend_from_slice(step.x);
+        self.p.extend_from_slice(step.p);
+        if let Some(pi) = step.arrival {
+            self.arrival
+                .get_or_insert_with(Vec::new)
+                .extend_from_slice(pi);
+        }
+        Ok(())
+    }
+
+    fn note(&mut self, note: &str) {
+        self.notes.push(note.to_string());
+    }
+}
+
+/// Runs `spec` on `model` over measurements and inputs held in memory, the whole run into
+/// memory: [`stream`] from an [`ArraySource`] (and a [`SliceTruth`]) into arrays.
+///
+/// `y` holds `T × N × q` values, step after step and subsystem after subsystem (NaN marks a
+/// lost element with known dropouts); `u` holds `T × N × m` (`None`: the model's own inputs);
+/// `truth`, when given, `T × N × (n + 1)`: each subsystem's states, then `γ`.
+///
+/// ```
+/// use sisfilt::model::Model;
+/// use sisfilt::run::{RunSpec, estimate};
+///
+/// let toml = r#"
+///     subsystems = 3
+///     steps = 4
+///     [interconnection]
+///     plus = 1
+///     minus = 1
+///     [model]
+///     A = [[0.9]]
+///     B = [[0.1, 0.1]]
+///     D = [[0.5], [0.5]]
+///     G = [[0.0, 0.0], [0.0, 0.0]]
+///     J = [[1.0]]
+///     M = [[0.05]]
+///     Q = [[0.01]]
+///     [dropout]
+///     p = 0.8
+///     [initial]
+///     mean = [0.0]
+///     cov = [[1.0]]
+/// "#;
+/// let model = Model::from_toml_str("chain.toml", std::path::Path::new("."), toml)?;
+/// // Four steps of the three subsystems' measurements (q = 1).
+/// let y = [0.1, 0.2, 0.3, 0.1, 0.0, 0.2, 0.2, 0.1, 0.1, 0.0, 0.3, 0.2];
+/// let spec = RunSpec { filter: sisfilt::filter::FilterKind::Joint, ..RunSpec::default() };
+/// let run = estimate(&model, &spec.check()?, &y, None, None)?;
+/// assert_eq!(run.report.steps, 4);
+/// assert_eq!(run.x.len(), 4 * 3); // T × N × n
+/// assert!(run.p.iter().all(|&v| v.is_finite()));
+/// # Ok::<(), sisfilt::Error>(())
+/// ```
+pub fn estimate(
+    model: &Model,
+    spec: &CheckedSpec,
+    y: &[f64],
+    u: Option<&[f64]>,
+    truth: Option<&[f64]>,
+) -> Result<Estimates> {
+    let mut source = ArraySource::new(model, y, u)?;
+    let mut truth = truth.map(|t| SliceTruth::new(model, t)).transpose()?;
+    let mut sink = Collect::default();
+    let report = stream(
+        model,
+        spec,
+        &mut source,
+        truth.as_mut().map(|t| t as &mut dyn TruthSource),
+        &mut sink,
+    )?;
+    Ok(Estimates {
+        x: sink.x,
+        p: sink.p,
+        arrival: sink.arrival,
+        report,
+        notes: sink.notes,
+    })
+}

@@ -9,7 +9,7 @@ use crate::filter::{
     JointOptions, SecondMoment, TwoStepOptions, Update, two_step,
 };
 use crate::interconnect::SolverKind;
-use crate::io::estimates::{EstimateKind, EstimateOptions, JointSettings};
+use crate::io::estimates::{EstimateKind, EstimateOptions, EstimatesColumns, JointSettings};
 use crate::model::Model;
 use crate::smoother::{
     CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
@@ -23,7 +23,6 @@ pub enum Setting {
     BandTol,
     Loading,
     SecondMomentBand,
-    MaxMemory,
 }
 
 impl Setting {
@@ -34,7 +33,6 @@ impl Setting {
             Self::BandTol => "band_tol",
             Self::Loading => "loading",
             Self::SecondMomentBand => "second_moment = band",
-            Self::MaxMemory => "max_memory",
         }
     }
 }
@@ -264,10 +262,15 @@ impl CheckedSpec {
         }
     }
 
-    /// The covariance band `k` the run's estimates carry beside their diagonal blocks on
-    /// `model` (the joint filter's, at most `N − 1`; 0 for the others).
-    pub fn cross_band(&self, model: &Model) -> usize {
-        self.joint.map_or(0, |j| j.band.min(model.subsystems - 1))
+    /// The columns of the run's estimates on `model`: the covariance band `k` beside the
+    /// diagonal blocks (the joint filter's, at most `N − 1`; 0 for the others), and `π` with
+    /// the mixture update.
+    pub fn columns(&self, model: &Model) -> EstimatesColumns {
+        EstimatesColumns {
+            n: model.dims.n,
+            cross: self.joint.map_or(0, |j| j.band.min(model.subsystems - 1)),
+            arrival: self.update() == Update::Mixture,
+        }
     }
 
     /// The filter (docs/theory.md §4, §7, §8, §10).

@@ -18,5 +18,6 @@ mod joint_filter;
 mod plot_cli;
 mod properties;
 mod reference_filters;
+mod run_api;
 mod simulate_cli;
 mod smoother;

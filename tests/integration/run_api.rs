@@ -1,0 +1,225 @@
+//! The run through the library on arrays (`sisfilt::run::estimate`) against the command line
+//! on the same files: every filter, update, dropout mode, predicted and smoothed output on
+//! the shipped configs gives the same estimates, `π`, log-likelihood and accuracy.
+
+use std::path::Path;
+
+use sisfilt::filter::{Dropouts, FilterKind, Update};
+use sisfilt::io::estimates::EstimatesDocument;
+use sisfilt::run::{RunSpec, estimate};
+
+use crate::common::{shipped_config, shipped_model, sisfilt};
+
+/// Every value of a `t,i,…` CSV after `t` and `i`, row after row (an empty cell is NaN).
+fn csv_values(path: &Path) -> Vec<f64> {
+    let mut reader = csv::Reader::from_path(path).unwrap();
+    let mut out = Vec::new();
+    for record in reader.records() {
+        for cell in record.unwrap().iter().skip(2) {
+            out.push(if cell.is_empty() {
+                f64::NAN
+            } else {
+                cell.parse().unwrap()
+            });
+        }
+    }
+    out
+}
+
+/// `a` and `b` agree to the last bits a JSON round trip may change.
+fn assert_close(a: f64, b: f64, what: &str) {
+    let scale = a.abs().max(b.abs());
+    assert!(
+        (a - b).abs() <= 1e-15 * scale || (a.is_nan() && b.is_nan()),
+        "{what}: library {a:e}, command line {b:e}"
+    );
+}
+
+/// The command line's estimates JSON of `args` on the simulation in `dir`.
+fn command_line(config: &Path, dir: &Path, args: &[&str]) -> EstimatesDocument {
+    let out = dir.join("estimates.json");
+    sisfilt()
+        .arg("-q")
+        .arg("estimate")
+        .arg("--config")
+        .arg(config)
+        .arg("--meas")
+        .arg(dir.join("measurements.csv"))
+        .arg("--truth")
+        .arg(dir.join("truth.csv"))
+        .arg("--out")
+        .arg(&out)
+        .args(args)
+        .assert()
+        .success();
+    serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
+}
+
+fn same_runs(config_name: &str) {
+    let config = shipped_config(config_name);
+    let model = shipped_model(config_name);
+    let (n, big_n) = (model.dims.n, model.subsystems);
+    let tmp = tempfile::tempdir().unwrap();
+    let (unknown, known) = (tmp.path().join("unknown"), tmp.path().join("known"));
+    for (dir, mark) in [(&unknown, false), (&known, true)] {
+        let mut cmd = sisfilt();
+        cmd.arg("-q")
+            .arg("simulate")
+            .arg(&config)
+            .arg("--out")
+            .arg(dir);
+        if mark {
+            cmd.arg("--mark-missing");
+        }
+        cmd.assert().success();
+    }
+    let flag = |v: &str| v.to_string();
+    let mut cases: Vec<(RunSpec, Vec<String>)> = Vec::new();
+    for filter in [
+        FilterKind::Distributed,
+        FilterKind::Joint,
+        FilterKind::Centralized,
+    ] {
+        let name = sisfilt::choice::Choice::name(filter);
+        for update in [Update::Linear, Update::Mixture] {
+            let base = RunSpec {
+                filter,
+                update,
+                ..RunSpec::default()
+            };
+            let update_name = sisfilt::choice::Choice::name(update);
+            let args = vec![
+                flag("--filter"),
+                flag(name),
+                flag("--update"),
+                flag(update_name),
+            ];
+            cases.push((base.clone(), args.clone()));
+            cases.push((
+                RunSpec {
+                    predicted: true,
+                    ..base.clone()
+                },
+                [args.clone(), vec![flag("--predicted")]].concat(),
+            ));
+            cases.push((
+                RunSpec {
+                    smooth: true,
+                    ..base
+                },
+                [args, vec![flag("--smooth")]].concat(),
+            ));
+        }
+        let known_spec = RunSpec {
+            filter,
+            dropouts: Dropouts::Known,
+            ..RunSpec::default()
+        };
+        let args = vec![
+            flag("--filter"),
+            flag(name),
+            flag("--dropouts"),
+            flag("known"),
+        ];
+        cases.push((known_spec.clone(), args.clone()));
+        cases.push((
+            RunSpec {
+                smooth: true,
+                ..known_spec
+            },
+            [args, vec![flag("--smooth")]].concat(),
+        ));
+    }
+    for (spec, args) in cases {
+        let dir = if spec.dropouts == Dropouts::Known {
+            &known
+        } else {
+            &unknown
+        };
+        let what = format!("{config_name} {}", args.join(" "));
+        let y = csv_values(&dir.join("measurements.csv"));
+        let truth = csv_values(&dir.join("truth.csv"));
+        let u = (model.dims.m > 0).then(|| csv_values(&dir.join("inputs.csv")));
+        let lib = estimate(
+            &model,
+            &spec.check().unwrap(),
+            &y,
+            u.as_deref(),
+            Some(&truth),
+        )
+        .unwrap();
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let cli = command_line(&config, dir, &args);
+        assert_eq!(cli.estimates.len(), lib.report.steps * big_n, "{what}");
+        let arrival_col = cli.columns.iter().position(|c| c == "arrival");
+        assert_eq!(arrival_col.is_some(), lib.arrival.is_some(), "{what}");
+        for (row, values) in cli.estimates.iter().enumerate() {
+            let value = |col: usize| values[col].unwrap();
+            for k in 0..n {
+                assert_close(lib.x[row * n + k], value(2 + k), &what);
+            }
+            // The CSV's P columns are the upper triangle, row by row; the blocks are
+            // column-major.
+            let mut col = 2 + n;
+            for r in 0..n {
+                for c in r..n {
+                    assert_close(lib.p[row * n * n + c * n + r], value(col), &what);
+                    col += 1;
+                }
+            }
+            if let (Some(col), Some(pi)) = (arrival_col, &lib.arrival) {
+                assert_close(pi[row], value(col), &what);
+            }
+        }
+        let (lib_sum, cli_sum) = (&lib.report.summary, &cli.summary);
+        assert_eq!(lib_sum.loglik.is_some(), cli_sum.loglik.is_some(), "{what}");
+        if let (Some(a), Some(b)) = (lib_sum.loglik, cli_sum.loglik) {
+            assert_close(a, b, &what);
+        }
+        let (a, b) = (
+            lib_sum.accuracy.as_ref().unwrap(),
+            cli_sum.accuracy.as_ref().unwrap(),
+        );
+        assert_close(a.rmse_overall, b.rmse_overall, &what);
+        assert_eq!(a.anees.is_some(), b.anees.is_some(), "{what}");
+        if let (Some(x), Some(y)) = (a.anees, b.anees) {
+            assert_close(x, y, &what);
+        }
+        assert_eq!(a.terms, b.terms, "{what}");
+        assert_eq!(
+            lib_sum.detection.is_some(),
+            cli_sum.detection.is_some(),
+            "{what}"
+        );
+    }
+}
+
+#[test]
+fn the_library_run_on_arrays_equals_the_command_line_on_platoon() {
+    same_runs("platoon.toml");
+}
+
+#[test]
+fn the_library_run_on_arrays_equals_the_command_line_on_paper() {
+    same_runs("paper.toml");
+}
+
+#[test]
+fn the_library_run_on_arrays_equals_the_command_line_on_heat_rod() {
+    same_runs("heat_rod.toml");
+}
+
+/// A spec the library refuses is refused once, before anything runs, with one message.
+#[test]
+fn an_invalid_spec_is_refused_before_the_run() {
+    let spec = RunSpec {
+        update: Update::Mixture,
+        dropouts: Dropouts::Known,
+        ..RunSpec::default()
+    };
+    let refused = spec.check().unwrap_err();
+    assert_eq!(
+        refused.to_string(),
+        "update = mixture needs dropouts = unknown: with known dropouts there is nothing to detect"
+    );
+}
