@@ -38,6 +38,8 @@ fi
 cases() {
     for cfg in platoon paper heat_rod; do
         echo "check-$cfg check configs/$cfg.toml"
+        echo "sim-$cfg simulate configs/$cfg.toml --out @O/sim"
+        echo "sim-$cfg-known simulate configs/$cfg.toml --mark-missing --seed 5 --out @O/sim"
         local sim="@D/sim-$cfg" known="@D/known-$cfg"
         local meas="--meas $sim/measurements.csv --truth $sim/truth.csv"
         local kmeas="--meas $known/measurements.csv --truth $known/truth.csv"

@@ -17,17 +17,6 @@ pub enum InputStream {
     File(Box<StepReader<Box<dyn Read + Send>>>),
 }
 
-/// The layout of an inputs file with `m` inputs.
-pub fn inputs_layout(m: usize) -> StepLayout {
-    StepLayout {
-        prefix: "u",
-        width: m,
-        extra: &[],
-        allow_empty: false,
-        empty_hint: "",
-    }
-}
-
 /// Opens a CSV of the given layout: a path, or `-` for standard input.
 pub fn open_csv(
     path: &Path,
@@ -53,7 +42,7 @@ impl InputStream {
         match Self::path(model, file) {
             Some(p) => Ok(InputStream::File(Box::new(open_csv(
                 p,
-                inputs_layout(model.dims.m),
+                StepLayout::inputs(model.dims.m),
                 model.subsystems,
             )?))),
             None => Ok(InputStream::Generated {

@@ -24,13 +24,7 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let allow_empty = mode & 1 == 1;
-    let layout = StepLayout {
-        prefix: "y",
-        width: 2,
-        extra: &[],
-        allow_empty,
-        empty_hint: " (a lost measurement? pass --dropouts known to skip empty cells)",
-    };
+    let layout = StepLayout::measurements(2, allow_empty);
     let mut reader = match StepReader::new(NAME, bytes, layout, SUBSYSTEMS) {
         Ok(r) => r,
         Err(e) => return check_message(&e),

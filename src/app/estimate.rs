@@ -145,28 +145,6 @@ impl EstimateArgs {
     }
 }
 
-/// The measurement file's layout: `t,i,y1..yq`; empty cells only in the known-dropout mode.
-fn measurement_layout(q: usize, dropouts: Dropouts) -> StepLayout {
-    StepLayout {
-        prefix: "y",
-        width: q,
-        extra: &[],
-        allow_empty: dropouts == Dropouts::Known,
-        empty_hint: " (a lost measurement? pass --dropouts known to skip empty cells)",
-    }
-}
-
-/// The truth file's layout: `t,i,x1..xn,gamma`.
-fn truth_layout(n: usize) -> StepLayout {
-    StepLayout {
-        prefix: "x",
-        width: n,
-        extra: &["gamma"],
-        allow_empty: false,
-        empty_hint: "",
-    }
-}
-
 /// The config of an `estimate` run: `--config`, else the `run.json` beside `--meas`. Also
 /// returns the folder of that run record, if one was used.
 fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>)> {
@@ -241,11 +219,15 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     }
     check_files(&read, &[Role::new("--out", &args.out)])?;
     let inputs = InputStream::open(&model, inputs_file.as_deref())?;
-    let meas = open_csv(&args.meas, measurement_layout(d.q, spec.dropouts()), big_n)?;
+    let meas = open_csv(
+        &args.meas,
+        StepLayout::measurements(d.q, spec.dropouts() == Dropouts::Known),
+        big_n,
+    )?;
     let truth = args
         .truth
         .as_ref()
-        .map(|p| open_csv(p, truth_layout(n), big_n))
+        .map(|p| open_csv(p, StepLayout::truth(n), big_n))
         .transpose()?;
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;

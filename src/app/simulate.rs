@@ -9,7 +9,7 @@ use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
 use sisfilt::inputs::InputStream;
 use sisfilt::interconnect::ChainSolver;
-use sisfilt::io::{CsvWriter, Output, Role, RunRecord, check_files};
+use sisfilt::io::{CsvWriter, Output, Role, RunRecord, StepLayout, check_files};
 use sisfilt::messages::info;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
@@ -100,20 +100,17 @@ fn write_simulation(
     let seed = args.seed.unwrap_or(model.seed);
     let d = model.dims;
     let file = |name: &str| -> Result<Output> { Ok(Output::create(&out_dir.join(name))?) };
-    let header = |prefix: &str, width: usize, extra: &[&str]| -> Vec<String> {
-        let mut h = vec!["t".to_string(), "i".to_string()];
-        h.extend((1..=width).map(|k| format!("{prefix}{k}")));
-        h.extend(extra.iter().map(|s| s.to_string()));
-        h
-    };
     let io_err = |name: &'static str| move |e| Error::io(name, e);
-    let mut truth = CsvWriter::new(file("truth.csv")?, &header("x", d.n, &["gamma"]))
+    let mut truth = CsvWriter::new(file("truth.csv")?, &StepLayout::truth(d.n).header())
         .map_err(io_err("truth.csv"))?;
-    let mut meas = CsvWriter::new(file("measurements.csv")?, &header("y", d.q, &[]))
-        .map_err(io_err("measurements.csv"))?;
+    let mut meas = CsvWriter::new(
+        file("measurements.csv")?,
+        &StepLayout::measurements(d.q, false).header(),
+    )
+    .map_err(io_err("measurements.csv"))?;
     let mut inputs_out = if d.m > 0 {
         Some(
-            CsvWriter::new(file("inputs.csv")?, &header("u", d.m, &[]))
+            CsvWriter::new(file("inputs.csv")?, &StepLayout::inputs(d.m).header())
                 .map_err(io_err("inputs.csv"))?,
         )
     } else {

@@ -22,6 +22,46 @@ pub struct StepLayout {
 }
 
 impl StepLayout {
+    /// The measurement file: `t,i,y1..yq`. An empty cell is a lost element, allowed only
+    /// with `lost_elements` (known dropouts).
+    pub fn measurements(q: usize, lost_elements: bool) -> Self {
+        Self {
+            prefix: "y",
+            width: q,
+            extra: &[],
+            allow_empty: lost_elements,
+            empty_hint: " (a lost measurement? pass --dropouts known to skip empty cells)",
+        }
+    }
+
+    /// The inputs file: `t,i,u1..um`.
+    pub fn inputs(m: usize) -> Self {
+        Self {
+            prefix: "u",
+            width: m,
+            extra: &[],
+            allow_empty: false,
+            empty_hint: "",
+        }
+    }
+
+    /// The truth file: `t,i,x1..xn,gamma`, the states and whether the measurement arrived.
+    pub fn truth(n: usize) -> Self {
+        Self {
+            prefix: "x",
+            width: n,
+            extra: &["gamma"],
+            allow_empty: false,
+            empty_hint: "",
+        }
+    }
+
+    /// The same layout with `width` value columns (a file whose width is read from its
+    /// header).
+    pub fn with_width(self, width: usize) -> Self {
+        Self { width, ..self }
+    }
+
     /// The header the file must have.
     pub fn header(&self) -> Vec<String> {
         let mut h = vec!["t".to_string(), "i".to_string()];

@@ -8,8 +8,8 @@ use std::io::{BufReader, Read};
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::io::StepReader;
 use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
+use crate::io::{StepLayout, StepReader};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
 type CsvReader = StepReader<Box<dyn Read>>;
@@ -87,34 +87,19 @@ pub struct TruthFile {
     pub subsystems: usize,
 }
 
-/// A per-`(t, i)` CSV `t,i,{prefix}1..{prefix}w` followed by the columns `extra`, its width
-/// `w` learnt from the header: the reader, `w` and the chain length `N`. Empty cells are
-/// read as NaN when `allow_empty`.
-fn open_step_file(
-    path: &Path,
-    prefix: &str,
-    extra: &[&str],
-    allow_empty: bool,
-) -> Result<(CsvReader, usize, usize)> {
+/// A per-`(t, i)` CSV of `layout` (docs/theory.md §13), its width `w` learnt from the header:
+/// the reader, `w` and the chain length `N`.
+fn open_step_file(path: &Path, layout: StepLayout) -> Result<(CsvReader, usize, usize)> {
     let (header, subsystems) = probe_csv(path)?;
-    let width = header.len().saturating_sub(2 + extra.len()).max(1);
-    let mut expected = vec!["t".to_string(), "i".to_string()];
-    expected.extend((1..=width).map(|k| format!("{prefix}{k}")));
-    expected.extend(extra.iter().map(|e| e.to_string()));
-    let reader = StepReader::with_header(
-        &display_name(path),
-        open(path)?,
-        expected,
-        allow_empty,
-        "",
-        subsystems,
-    )?;
+    let width = header.len().saturating_sub(2 + layout.extra.len()).max(1);
+    let layout = layout.with_width(width);
+    let reader = StepReader::new(&display_name(path), open(path)?, layout, subsystems)?;
     Ok((reader, width, subsystems))
 }
 
 impl TruthFile {
     pub fn open(path: &Path) -> Result<Self> {
-        let (reader, n, subsystems) = open_step_file(path, "x", &["gamma"], false)?;
+        let (reader, n, subsystems) = open_step_file(path, StepLayout::truth(0))?;
         Ok(Self {
             reader,
             n,
@@ -137,7 +122,7 @@ pub struct MeasurementFile {
 
 impl MeasurementFile {
     pub fn open(path: &Path) -> Result<Self> {
-        let (reader, q, subsystems) = open_step_file(path, "y", &[], true)?;
+        let (reader, q, subsystems) = open_step_file(path, StepLayout::measurements(0, true))?;
         Ok(Self {
             reader,
             q,
