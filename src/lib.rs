@@ -21,7 +21,8 @@
 //! `S` denotes the raw second moment `E[x xᵀ]` of docs/theory.md §4, never the chain length.
 //!
 //! # Modules, in data-flow order
-//! - [`config`]: the TOML as written; [`model`]: the validated model and its parameters at `(t, i)`.
+//! - [`config`]: the TOML as written; [`model`]: the validated model and its parameters at `(t, i)`;
+//!   [`check`]: what `check` finds in a model, as a value.
 //! - [`inputs`]: the inputs `u(t, ·)`, generated or read; [`simulate`]: the true system with
 //!   dropouts.
 //! - [`interconnect`]: step 1, the chain solve, on [`linalg::band_lu`] (banded LU with a
@@ -50,6 +51,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod accuracy;
+pub mod check;
 pub mod choice;
 pub mod config;
 pub mod error;

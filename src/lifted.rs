@@ -167,7 +167,7 @@ pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Ge
 }
 
 /// The spectral radius of `A_eff` over a time window.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct SpectralRadius {
     pub value: f64,
     /// True when computed from all eigenvalues, false for a power-iteration estimate.

@@ -1,0 +1,190 @@
+//! What `check` finds in a model, as a value (docs/theory.md §13): its dimensions, which
+//! parameters vary in time or space, and per window of parameters the interconnection
+//! system's condition, the spectral radius of the lifted `A_eff` (docs/theory.md §3), the
+//! band of `A_eff` with the joint filter's cost (§8), and the memory of each smoother (§9).
+//! A front end prints it, or hands it on (a Python dict).
+
+use serde::Serialize;
+
+use crate::error::Result;
+use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
+use crate::interconnect::ChainSolver;
+use crate::lifted::{SpectralRadius, a_eff_band, spectral_radius};
+use crate::model::{Dims, MATRIX_KEYS, Model};
+use crate::smoother::{SmootherKind, memory_bytes};
+
+/// Power-iteration steps for the spectral radius (a run takes fewer: it only wants a quick
+/// stability warning).
+const POWER_STEPS: usize = 4000;
+
+/// The figures of a model.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelCheck {
+    pub subsystems: usize,
+    pub steps: usize,
+    pub dims: Dims,
+    /// The parameters (`A` … `Q`, then `p`) that vary, in that order.
+    pub varying: Vec<Variation>,
+    /// Every `Q` is zero (the paper's setting).
+    pub q_is_zero: bool,
+    /// One per window of parameters that starts by `T`, in time order.
+    pub windows: Vec<WindowCheck>,
+    /// The joint filter's default band `k` (at most `N − 1`), which the costs below assume.
+    pub joint_band: usize,
+    /// Bytes each smoother's stored forward pass takes for the `T` steps of the model.
+    pub smoother_memory: SmootherMemory,
+}
+
+/// A parameter that varies, and how.
+#[derive(Debug, Clone, Serialize)]
+pub struct Variation {
+    /// Its config key (`A`, …, `Q`, `p`).
+    pub key: &'static str,
+    pub time: bool,
+    pub space: bool,
+}
+
+/// The figures of the window of parameters in force over the steps `first..=last`.
+#[derive(Debug, Clone, Serialize)]
+pub struct WindowCheck {
+    pub first: usize,
+    pub last: usize,
+    /// The interconnection system's condition estimate (1-norm).
+    pub condition: f64,
+    /// The spectral radius of `A_eff`: exact, or a power-iteration estimate.
+    pub spectral_radius: SpectralRadius,
+    /// The half-width `b` of `A_eff`'s band at the default tolerance.
+    pub a_eff_half_width: usize,
+    /// That tolerance.
+    pub band_tol: f64,
+    /// The joint filter's flops per subsystem-step at the default band, with its band moment.
+    pub joint_flops: f64,
+}
+
+/// Bytes the stored forward pass of each smoother takes.
+#[derive(Debug, Clone, Serialize)]
+pub struct SmootherMemory {
+    pub distributed: u64,
+    /// At the default band.
+    pub joint: u64,
+    pub centralized: u64,
+}
+
+impl ModelCheck {
+    /// The windows whose `A_eff` is not stable (spectral radius ≥ 1).
+    pub fn unstable_windows(&self) -> impl Iterator<Item = &WindowCheck> {
+        self.windows
+            .iter()
+            .filter(|w| w.spectral_radius.value >= 1.0)
+    }
+}
+
+/// The figures of `model` (one chain solve and one spectral radius per window).
+pub fn check(model: &Model) -> Result<ModelCheck> {
+    let varying = MATRIX_KEYS
+        .iter()
+        .copied()
+        .chain(["p"])
+        .filter_map(|key| {
+            let (time, space) = model.variation(key);
+            (time || space).then_some(Variation { key, time, space })
+        })
+        .collect();
+    let joint_band = DEFAULT_BAND.min(model.subsystems - 1);
+    let all = model.windows();
+    let mut windows = Vec::new();
+    for (k, w) in all.iter().enumerate() {
+        if w.first > model.steps {
+            break;
+        }
+        let last = all
+            .get(k + 1)
+            .map_or(model.steps, |next| (next.first - 1).min(model.steps));
+        let solver = ChainSolver::new(model, w.first)?;
+        let b = a_eff_band(model, w.first, &solver, DEFAULT_BAND_TOL).half_width();
+        windows.push(WindowCheck {
+            first: w.first,
+            last,
+            condition: solver.condition(),
+            spectral_radius: spectral_radius(model, w.first, POWER_STEPS)?,
+            a_eff_half_width: b,
+            band_tol: DEFAULT_BAND_TOL,
+            joint_flops: flops_per_subsystem_step(
+                model.dims.n,
+                joint_band,
+                b,
+                model.subsystems,
+                true,
+            ),
+        });
+    }
+    let memory = |kind| memory_bytes(model, kind, model.steps);
+    Ok(ModelCheck {
+        subsystems: model.subsystems,
+        steps: model.steps,
+        dims: model.dims,
+        varying,
+        q_is_zero: model.q_is_zero(),
+        windows,
+        joint_band,
+        smoother_memory: SmootherMemory {
+            distributed: memory(SmootherKind::Distributed),
+            joint: memory(SmootherKind::Joint(joint_band)),
+            centralized: memory(SmootherKind::Centralized),
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An uncoupled chain (`B = 0`): `A_eff = blkdiag(A)`, so each window's spectral radius is
+    /// the largest `|A|` of its subsystems.
+    #[test]
+    fn each_window_has_the_radius_of_its_own_a() {
+        let text = r#"
+            subsystems = 3
+            steps = 6
+            [interconnection]
+            plus = 1
+            minus = 1
+            [model]
+            A = [[0.5]]
+            B = [[0.0, 0.0]]
+            D = [[0.0], [0.0]]
+            G = [[0.0, 0.0], [0.0, 0.0]]
+            J = [[1.0]]
+            M = [[0.1]]
+            [dropout]
+            p = 0.9
+            [initial]
+            cov = [[1.0]]
+            [[override]]
+            subsystems = [2, 2]
+            steps = [3, 4]
+            A = [[-1.5]]
+        "#;
+        let model = Model::from_toml_str("chain.toml", std::path::Path::new("."), text).unwrap();
+        let figures = check(&model).unwrap();
+        let spans: Vec<(usize, usize, f64)> = figures
+            .windows
+            .iter()
+            .map(|w| (w.first, w.last, w.spectral_radius.value))
+            .collect();
+        assert_eq!(spans.len(), 3, "{spans:?}");
+        for ((first, last, rho), (want_first, want_last, want_rho)) in
+            spans.iter().zip([(1, 2, 0.5), (3, 4, 1.5), (5, 6, 0.5)])
+        {
+            assert_eq!((*first, *last), (want_first, want_last));
+            assert!((rho - want_rho).abs() < 1e-12, "{spans:?}");
+        }
+        let unstable: Vec<usize> = figures.unstable_windows().map(|w| w.first).collect();
+        assert_eq!(unstable, [3]);
+        assert_eq!(figures.varying.len(), 1);
+        let a = &figures.varying[0];
+        assert_eq!((a.key, a.time, a.space), ("A", true, true));
+        assert!(figures.q_is_zero);
+        assert_eq!(figures.joint_band, 2);
+    }
+}
