@@ -196,6 +196,23 @@ impl ConfigSource {
         Self::from_text(&path.display().to_string(), dir, text)
     }
 
+    /// A config built in code (a front end's arrays): the same tables as the TOML, and the
+    /// TOML text written from them, which a run record keeps; `name` appears in every
+    /// message.
+    pub fn from_raw(name: &str, dir: PathBuf, raw: RawConfig) -> Result<Self> {
+        let text = toml::to_string(&raw).map_err(|e| Error::Config {
+            file: name.to_string(),
+            key: "config".into(),
+            msg: format!("cannot be written as TOML: {e}"),
+        })?;
+        Ok(Self {
+            name: name.to_string(),
+            dir,
+            text,
+            raw,
+        })
+    }
+
     /// Parses TOML text; `name` appears in every message.
     pub fn from_text(name: &str, dir: PathBuf, text: String) -> Result<Self> {
         let raw: RawConfig = toml::from_str(&text).map_err(|e| {

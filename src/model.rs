@@ -395,6 +395,13 @@ impl Model {
         )?)
     }
 
+    /// Checks a config built in code and builds the model: the same tables as the TOML
+    /// ([`RawConfig`]), the same validation and the same messages, which `name` opens; a
+    /// relative `input.path` resolves against the working folder.
+    pub fn from_raw(name: &str, raw: RawConfig) -> Result<Self> {
+        Self::from_config(&ConfigSource::from_raw(name, PathBuf::from("."), raw)?)
+    }
+
     /// Checks a parsed config and builds the model (docs/theory.md §1, §13).
     pub fn from_config(src: &ConfigSource) -> Result<Self> {
         let c = Checker { file: &src.name };

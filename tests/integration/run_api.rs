@@ -223,3 +223,103 @@ fn an_invalid_spec_is_refused_before_the_run() {
         "update = mixture needs dropouts = unknown: with known dropouts there is nothing to detect"
     );
 }
+
+/// The chain of [`model_in_code`], as TOML.
+const CHAIN_TOML: &str = r#"
+subsystems = 4
+steps = 5
+seed = 3
+
+[interconnection]
+plus = 1
+minus = 1
+
+[model]
+A = [[0.9, 0.1], [0.0, 0.8]]
+B = [[0.1, 0.0], [0.0, 0.1]]
+D = [[0.5, 0.0], [0.0, 0.5]]
+G = [[0.0, 0.0], [0.0, 0.0]]
+J = [[1.0, 0.0]]
+M = [[0.05]]
+Q = [[0.01, 0.0], [0.0, 0.01]]
+
+[dropout]
+p = [0.9, 0.8, 0.7, 0.6]
+
+[initial]
+cov = [[1.0, 0.0], [0.0, 1.0]]
+
+[[override]]
+subsystems = [2, 3]
+steps = [2, 4]
+M = [[0.2]]
+"#;
+
+/// The same chain as [`CHAIN_TOML`], built in code, with `M` as given.
+fn model_in_code(m: f64) -> sisfilt::config::RawConfig {
+    use sisfilt::config::*;
+    RawConfig {
+        subsystems: 4,
+        steps: 5,
+        seed: 3,
+        interconnection: RawInterconnection { plus: 1, minus: 1 },
+        model: RawModel {
+            A: vec![vec![0.9, 0.1], vec![0.0, 0.8]],
+            B: vec![vec![0.1, 0.0], vec![0.0, 0.1]],
+            C: None,
+            D: vec![vec![0.5, 0.0], vec![0.0, 0.5]],
+            G: vec![vec![0.0, 0.0], vec![0.0, 0.0]],
+            H: None,
+            J: vec![vec![1.0, 0.0]],
+            R: None,
+            M: vec![vec![m]],
+            Q: Some(vec![vec![0.01, 0.0], vec![0.0, 0.01]]),
+        },
+        dropout: RawDropout {
+            p: RawProbability::PerSubsystem(vec![0.9, 0.8, 0.7, 0.6]),
+        },
+        initial: RawInitial {
+            mean: None,
+            cov: vec![vec![1.0, 0.0], vec![0.0, 1.0]],
+        },
+        input: None,
+        overrides: vec![RawOverride {
+            subsystems: Some([2, 3]),
+            steps: Some([2, 4]),
+            A: None,
+            B: None,
+            C: None,
+            D: None,
+            G: None,
+            H: None,
+            J: None,
+            R: None,
+            M: Some(vec![vec![0.2]]),
+            Q: None,
+            p: None,
+        }],
+    }
+}
+
+/// A model built in code is the model of the same TOML, and is refused with the same message.
+#[test]
+fn a_model_built_in_code_equals_the_one_read_from_the_same_toml() {
+    use sisfilt::model::Model;
+    let from_toml = Model::from_toml_str("chain", Path::new("."), CHAIN_TOML).unwrap();
+    let in_code = Model::from_raw("chain", model_in_code(0.05)).unwrap();
+    assert_eq!(format!("{in_code:?}"), format!("{from_toml:?}"));
+    // The TOML it records reads back as the same model.
+    let src =
+        sisfilt::config::ConfigSource::from_raw("chain", ".".into(), model_in_code(0.05)).unwrap();
+    let again = Model::from_toml_str("chain", Path::new("."), &src.text).unwrap();
+    assert_eq!(format!("{again:?}"), format!("{from_toml:?}"));
+
+    let bad_toml = CHAIN_TOML.replace("M = [[0.05]]", "M = [[-1.0]]");
+    let refused_toml = Model::from_toml_str("chain", Path::new("."), &bad_toml).unwrap_err();
+    let refused_code = Model::from_raw("chain", model_in_code(-1.0)).unwrap_err();
+    assert_eq!(refused_code.to_string(), refused_toml.to_string());
+    assert!(
+        refused_code.to_string().starts_with("chain: model.M: "),
+        "{refused_code}"
+    );
+}
