@@ -23,7 +23,7 @@ use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
 
 /// The kernel `two_step` picks for W.
-type Fast<'m> = TwoStepFilter<'m, FixedKernel<2, 1>>;
+type Fast = TwoStepFilter<FixedKernel<2, 1>>;
 
 /// Workload W with `subsystems` and `steps` replaced.
 fn workload(subsystems: usize, steps: usize) -> Model {

@@ -8,6 +8,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, SymmetricEigen};
 
@@ -139,9 +140,31 @@ pub struct Window {
     pub p: Vec<f64>,
 }
 
-/// The validated model. Built once by [`Model::from_config`]; read-only afterwards.
+/// The validated model, built once by [`Model::from_config`] (or [`Model::from_raw`]): a handle
+/// to its [`ModelData`], which it shares. A clone costs a reference count, so a filter or a
+/// smoother keeps a model of its own and borrows nothing, and a long-lived object in another
+/// language can hold one. A change through the handle (`model.steps = …`) changes a copy of
+/// the data when it is shared.
 #[derive(Debug, Clone)]
-pub struct Model {
+pub struct Model(Arc<ModelData>);
+
+impl std::ops::Deref for Model {
+    type Target = ModelData;
+
+    fn deref(&self) -> &ModelData {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Model {
+    fn deref_mut(&mut self) -> &mut ModelData {
+        Arc::make_mut(&mut self.0)
+    }
+}
+
+/// The data of a [`Model`], read through it.
+#[derive(Debug, Clone)]
+pub struct ModelData {
     /// The config's name, for messages.
     pub name: String,
     pub dims: Dims,
@@ -555,7 +578,7 @@ impl Model {
         }
         let (params, windows) = Self::build_windows(base, &base_p, &overrides, subsystems);
 
-        Ok(Model {
+        Ok(Model(Arc::new(ModelData {
             name: src.name.clone(),
             dims,
             subsystems,
@@ -566,7 +589,7 @@ impl Model {
             input,
             params,
             windows,
-        })
+        })))
     }
 
     fn input_spec(c: &Checker, src: &ConfigSource, m: usize) -> Result<InputSpec> {

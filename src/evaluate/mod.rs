@@ -150,9 +150,9 @@ const MAX_SCHEDULE_BYTES: usize = 1 << 30;
 
 /// The covariance passes computed once for all runs (docs/theory.md §7, §8, §9).
 #[derive(Default)]
-struct Schedules<'m> {
-    centralized: Option<CentralizedSchedule<'m>>,
-    joint: Option<JointSchedule<'m>>,
+struct Schedules {
+    centralized: Option<CentralizedSchedule>,
+    joint: Option<JointSchedule>,
     /// Per [`Compared::index`], for the smoothers: the gains and covariances of the backward
     /// pass.
     smoothers: Vec<Option<SmootherSchedule>>,
@@ -189,12 +189,12 @@ fn joint_options(opts: &EvaluateOptions) -> Result<JointOptions> {
 }
 
 /// The filter `filter`, or for a smoother the filter it smooths (whose means it replays).
-fn make_filter<'a>(
-    model: &'a Model,
+fn make_filter<'s>(
+    model: &Model,
     filter: Compared,
     opts: &EvaluateOptions,
-    schedules: &'a Schedules<'a>,
-) -> Result<Box<dyn ChainFilter + 'a>> {
+    schedules: &'s Schedules,
+) -> Result<Box<dyn ChainFilter + 's>> {
     let filter = filter.smooths().unwrap_or(filter);
     Ok(match (filter, &schedules.centralized, &schedules.joint) {
         (Compared::Centralized, Some(s), _) => Box::new(ScheduledCentralized::new(s)),
@@ -239,11 +239,11 @@ impl StepNees {
 }
 
 /// The smoother `smoother` (one of the [`Compared`] smoothers).
-fn make_smoother<'a>(
-    model: &'a Model,
+fn make_smoother(
+    model: &Model,
     smoother: Compared,
     opts: &EvaluateOptions,
-) -> Result<Box<dyn Smoother + 'a>> {
+) -> Result<Box<dyn Smoother>> {
     smoother.spec(opts).check()?.build_smoother(model)
 }
 

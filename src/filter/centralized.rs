@@ -21,8 +21,8 @@ use crate::run::check_update;
 pub const DEFAULT_MAX_LIFTED: usize = 1000;
 
 /// The centralized filter's state.
-pub struct CentralizedFilter<'m> {
-    model: &'m Model,
+pub struct CentralizedFilter {
+    model: Model,
     known: bool,
     t: usize,
     sys: LiftedSystem,
@@ -45,10 +45,10 @@ pub struct CentralizedFilter<'m> {
     log_likelihood: Option<f64>,
 }
 
-impl<'m> CentralizedFilter<'m> {
+impl CentralizedFilter {
     /// Starts from `X̂(1) = [m0; …]`, `T(1) = blkdiag(P0)`. Refuses chains with
     /// `N·n > max_lifted`.
-    pub fn new(model: &'m Model, known: bool, max_lifted: usize) -> Result<Self> {
+    pub fn new(model: &Model, known: bool, max_lifted: usize) -> Result<Self> {
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         let size = big_n * n;
@@ -61,7 +61,7 @@ impl<'m> CentralizedFilter<'m> {
         let x_pred = init.mean.as_slice().to_vec();
         let t_pred = init.cov.as_slice().to_vec();
         Ok(Self {
-            model,
+            model: model.clone(),
             known,
             t: 1,
             sys: LiftedSystem::new(model, 1)?,
@@ -102,7 +102,7 @@ impl<'m> CentralizedFilter<'m> {
     /// The mixture update of step `t` into `x_filt`, `p_filt` and the arrival
     /// probabilities.
     fn mixture_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
         let size = big_n * n;
@@ -185,7 +185,7 @@ impl<'m> CentralizedFilter<'m> {
 
     /// Nahi's update of step `t` on the lifted system (docs/theory.md §7).
     fn linear_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
         let window = model.window(t);
@@ -254,9 +254,9 @@ impl<'m> CentralizedFilter<'m> {
     }
 }
 
-impl ChainFilter for CentralizedFilter<'_> {
+impl ChainFilter for CentralizedFilter {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         let size = big_n * n;
@@ -317,8 +317,8 @@ impl ChainFilter for CentralizedFilter<'_> {
 /// The covariance pass of the unknown-dropout centralized filter, stored per step. Its gains
 /// and covariances depend only on the model and the inputs, not on the measurements, so
 /// `evaluate` computes it once and replays it for every run with [`ScheduledCentralized`].
-pub struct CentralizedSchedule<'m> {
-    model: &'m Model,
+pub struct CentralizedSchedule {
+    model: Model,
     /// Per step: `W(t) = Σ⁻¹ H T` (the transposed gain), and the diagonal blocks of
     /// `P(t|t)` and `T(t+1)`.
     gains: Vec<DMatrix<f64>>,
@@ -329,7 +329,7 @@ pub struct CentralizedSchedule<'m> {
     system_of_step: Vec<usize>,
 }
 
-impl<'m> CentralizedSchedule<'m> {
+impl CentralizedSchedule {
     /// Bytes a schedule of `steps` steps needs.
     pub fn bytes(model: &Model, steps: usize) -> usize {
         let (nn, nq) = (
@@ -340,11 +340,11 @@ impl<'m> CentralizedSchedule<'m> {
     }
 
     /// Runs the covariance pass for the given inputs (`u[t]`, `N·m` values per step).
-    pub fn new(model: &'m Model, u: &[Vec<f64>], max_lifted: usize) -> Result<Self> {
+    pub fn new(model: &Model, u: &[Vec<f64>], max_lifted: usize) -> Result<Self> {
         let mut filter = CentralizedFilter::new(model, false, max_lifted)?;
         let y = vec![0.0; model.subsystems * model.dims.q];
         let mut sched = Self {
-            model,
+            model: model.clone(),
             gains: Vec::with_capacity(u.len()),
             p_blocks: Vec::with_capacity(u.len()),
             t_blocks: Vec::with_capacity(u.len()),
@@ -371,16 +371,16 @@ impl<'m> CentralizedSchedule<'m> {
 
 /// The centralized Nahi filter replayed from a [`CentralizedSchedule`]: only the means are
 /// computed, `O((Nn)²)` per step. Equal to [`CentralizedFilter`] in the unknown-dropout mode.
-pub struct ScheduledCentralized<'s, 'm> {
-    sched: &'s CentralizedSchedule<'m>,
+pub struct ScheduledCentralized<'s> {
+    sched: &'s CentralizedSchedule,
     t: usize,
     x_pred: Vec<f64>,
     x_filt: Vec<f64>,
     innov: Vec<f64>,
 }
 
-impl<'s, 'm> ScheduledCentralized<'s, 'm> {
-    pub fn new(sched: &'s CentralizedSchedule<'m>) -> Self {
+impl<'s> ScheduledCentralized<'s> {
+    pub fn new(sched: &'s CentralizedSchedule) -> Self {
         let (n, big_n) = (sched.model.dims.n, sched.model.subsystems);
         let x_pred: Vec<f64> = (0..big_n * n)
             .map(|r| sched.model.initial_mean[r % n])
@@ -395,9 +395,9 @@ impl<'s, 'm> ScheduledCentralized<'s, 'm> {
     }
 }
 
-impl ChainFilter for ScheduledCentralized<'_, '_> {
+impl ChainFilter for ScheduledCentralized<'_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.sched.model;
+        let model = &self.sched.model;
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         let t = self.t;

@@ -93,8 +93,8 @@ impl Sharing {
 
 /// The filter's state between time steps; `K` does the per-subsystem arithmetic (use
 /// [`two_step`] to get the fastest kernel for the model's sizes).
-pub struct TwoStepFilter<'m, K: LocalKernel = DynamicKernel> {
-    model: &'m Model,
+pub struct TwoStepFilter<K: LocalKernel = DynamicKernel> {
+    model: Model,
     opts: TwoStepOptions,
     solver: Interconnect,
     /// The next time step to process.
@@ -373,7 +373,7 @@ fn par_chunks_or_empty(
 
 /// The two-step filter with the fastest kernel for the model's `(n, q)`: compile-time sizes
 /// for `n ≤ 4`, `q ≤ 2`, dynamic sizes otherwise.
-pub fn two_step<'m>(model: &'m Model, opts: TwoStepOptions) -> Result<Box<dyn ChainFilter + 'm>> {
+pub fn two_step(model: &Model, opts: TwoStepOptions) -> Result<Box<dyn ChainFilter>> {
     macro_rules! fixed {
         ($(($n:literal, $q:literal)),*) => {
             match (model.dims.n, model.dims.q) {
@@ -394,16 +394,16 @@ pub fn two_step<'m>(model: &'m Model, opts: TwoStepOptions) -> Result<Box<dyn Ch
     ))
 }
 
-impl<'m> TwoStepFilter<'m, DynamicKernel> {
+impl TwoStepFilter<DynamicKernel> {
     /// The filter with dynamic sizes (any `n`, `q`); see [`two_step`] for the fast path.
-    pub fn new(model: &'m Model, opts: TwoStepOptions) -> Result<Self> {
+    pub fn new(model: &Model, opts: TwoStepOptions) -> Result<Self> {
         Self::with_kernel(model, opts)
     }
 }
 
-impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
+impl<K: LocalKernel> TwoStepFilter<K> {
     /// Initial values of docs/theory.md §4: `x̂(1) = m0`, `T(1) = P0`, `S(1) = P0 + m0 m0ᵀ`.
-    pub fn with_kernel(model: &'m Model, opts: TwoStepOptions) -> Result<Self> {
+    pub fn with_kernel(model: &Model, opts: TwoStepOptions) -> Result<Self> {
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         if opts.second_moment == SecondMoment::Band {
@@ -449,7 +449,7 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
         let worker = Worker::<K>::new(model);
         let gain = worker.kernel.new_gain();
         Ok(Self {
-            model,
+            model: model.clone(),
             opts,
             solver,
             t: 1,
@@ -517,9 +517,9 @@ impl<'m, K: LocalKernel> TwoStepFilter<'m, K> {
     }
 }
 
-impl<K: LocalKernel> ChainFilter for TwoStepFilter<'_, K> {
+impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let d = model.dims;
         let (n, s, big_n) = (d.n, d.s(), model.subsystems);
         let t = self.t;

@@ -164,7 +164,7 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<String>> {
 /// The filtered (or predicted) run: each step is read, filtered, handed on and scored.
 fn run_filter(
     model: &Model,
-    mut filter: Box<dyn ChainFilter + '_>,
+    mut filter: Box<dyn ChainFilter>,
     predicted: bool,
     source: &mut dyn StepSource,
     mut truth: Option<&mut dyn TruthSource>,
@@ -238,7 +238,7 @@ fn run_filter(
 fn run_smoother(
     model: &Model,
     spec: &CheckedSpec,
-    mut smoother: Box<dyn Smoother + '_>,
+    mut smoother: Box<dyn Smoother>,
     source: &mut dyn StepSource,
     mut truth: Option<&mut dyn TruthSource>,
     sink: &mut dyn EstimateSink,

@@ -274,7 +274,7 @@ impl CheckedSpec {
     }
 
     /// The filter (docs/theory.md §4, §7, §8, §10).
-    pub fn build_filter<'m>(&self, model: &'m Model) -> crate::Result<Box<dyn ChainFilter + 'm>> {
+    pub fn build_filter(&self, model: &Model) -> crate::Result<Box<dyn ChainFilter>> {
         Ok(match (self.filter, self.joint) {
             (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(model, j)?),
             (FilterKind::Centralized, _) => {
@@ -290,7 +290,7 @@ impl CheckedSpec {
     }
 
     /// The smoother of the filter (docs/theory.md §9).
-    pub fn build_smoother<'m>(&self, model: &'m Model) -> crate::Result<Box<dyn Smoother + 'm>> {
+    pub fn build_smoother(&self, model: &Model) -> crate::Result<Box<dyn Smoother>> {
         Ok(match (self.filter, self.joint) {
             (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
             (FilterKind::Centralized, _) => {

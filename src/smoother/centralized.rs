@@ -25,11 +25,11 @@ use crate::smoother::{
 pub const MAX_CONDITION: f64 = 1e12;
 
 /// The stored forward pass of the centralized filter.
-pub struct CentralizedSmoother<'m> {
-    model: &'m Model,
+pub struct CentralizedSmoother {
+    model: Model,
     known: bool,
     update: Update,
-    filter: CentralizedFilter<'m>,
+    filter: CentralizedFilter,
     x_filt: Vec<DVector<f64>>,
     x_pred: Vec<DVector<f64>>,
     p_filt: Vec<DMatrix<f64>>,
@@ -40,10 +40,10 @@ pub struct CentralizedSmoother<'m> {
     u: Vec<Vec<f64>>,
 }
 
-impl<'m> CentralizedSmoother<'m> {
-    pub fn new(model: &'m Model, known: bool, max_lifted: usize) -> Result<Self> {
+impl CentralizedSmoother {
+    pub fn new(model: &Model, known: bool, max_lifted: usize) -> Result<Self> {
         Ok(Self {
-            model,
+            model: model.clone(),
             known,
             update: Update::Linear,
             filter: CentralizedFilter::new(model, known, max_lifted)?,
@@ -66,7 +66,7 @@ impl<'m> CentralizedSmoother<'m> {
     }
 }
 
-impl Smoother for CentralizedSmoother<'_> {
+impl Smoother for CentralizedSmoother {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         self.filter.step(y, u)?;
         let size = self.model.subsystems * self.model.dims.n;
@@ -95,7 +95,7 @@ impl Smoother for CentralizedSmoother<'_> {
     }
 
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
         let mut xs: Vec<Vec<f64>> = self.x_filt.iter().map(|x| x.as_slice().to_vec()).collect();
@@ -158,7 +158,7 @@ impl Smoother for CentralizedSmoother<'_> {
     }
 }
 
-impl CentralizedSmoother<'_> {
+impl CentralizedSmoother {
     /// Smooths the stored data by the information form at full band (docs/theory.md §9 fallback).
     fn information_form_fallback(
         &self,
@@ -166,7 +166,7 @@ impl CentralizedSmoother<'_> {
         condition: f64,
         keep_gains: bool,
     ) -> Result<Smoothed> {
-        let model = self.model;
+        let model = &self.model.clone();
         let dropouts = if self.known {
             Dropouts::Known
         } else {

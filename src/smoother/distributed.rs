@@ -21,19 +21,19 @@ use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
 /// The forward pass of a filter that predicts each subsystem with `x̂⁺ = A x̂ + …`,
 /// `T⁺ = A P Aᵀ + Q`, stored for the per-subsystem RTS pass.
-pub struct DistributedSmoother<'m> {
-    model: &'m Model,
-    filter: Box<dyn ChainFilter + 'm>,
+pub struct DistributedSmoother {
+    model: Model,
+    filter: Box<dyn ChainFilter>,
     x_filt: Vec<Vec<f64>>,
     p_filt: Vec<Vec<f64>>,
     x_pred: Vec<Vec<f64>>,
     t_pred: Vec<Vec<f64>>,
 }
 
-impl<'m> DistributedSmoother<'m> {
-    pub fn new(model: &'m Model, filter: Box<dyn ChainFilter + 'm>) -> Self {
+impl DistributedSmoother {
+    pub fn new(model: &Model, filter: Box<dyn ChainFilter>) -> Self {
         Self {
-            model,
+            model: model.clone(),
             filter,
             x_filt: Vec::new(),
             p_filt: Vec::new(),
@@ -101,7 +101,7 @@ impl Rts {
     }
 }
 
-impl Smoother for DistributedSmoother<'_> {
+impl Smoother for DistributedSmoother {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         self.filter.step(y, u)?;
         let (xf, pf) = self.filter.filtered();
@@ -118,7 +118,7 @@ impl Smoother for DistributedSmoother<'_> {
     }
 
     fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
         let mut xs = self.x_filt.clone();

@@ -30,9 +30,9 @@ use crate::model::Model;
 use crate::smoother::{BackwardGain, ForwardPass, GainView, MeanPass, Smoothed, Smoother};
 
 /// The stored forward pass of the joint filter.
-pub struct JointSmoother<'m> {
-    model: &'m Model,
-    filter: JointFilter<'m>,
+pub struct JointSmoother {
+    model: Model,
+    filter: JointFilter,
     x_pred: Vec<Vec<f64>>,
     x_filt: Vec<Vec<f64>>,
     prior: Vec<SymBand>,
@@ -59,14 +59,14 @@ struct Recorded {
 /// the centralized smoother's RMSE to three digits.
 const RETRY_LOADINGS: [f64; 3] = [1e-7, 1e-6, 1e-5];
 
-impl<'m> JointSmoother<'m> {
-    pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
+impl JointSmoother {
+    pub fn new(model: &Model, opts: JointOptions) -> Result<Self> {
         let mut filter = JointFilter::new(model, opts)?;
         let (n, big_n, k) = (model.dims.n, model.subsystems, filter.band());
         filter.kept_precisions = Some((SymBand::zeros(big_n, n, k), SymBand::zeros(big_n, n, k)));
         let retry = opts.loading.is_none() && filter.loading() < RETRY_LOADINGS[0];
         Ok(Self {
-            model,
+            model: model.clone(),
             filter,
             x_pred: Vec::new(),
             x_filt: Vec::new(),
@@ -92,7 +92,7 @@ impl<'m> JointSmoother<'m> {
     }
 }
 
-impl Smoother for JointSmoother<'_> {
+impl Smoother for JointSmoother {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         if let Some(data) = &mut self.data {
             data.y.push(y.to_vec());
@@ -123,7 +123,8 @@ impl Smoother for JointSmoother<'_> {
     /// with the loadings 1e−7, 1e−6 and 1e−5 until one succeeds, and a note says which.
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let data = self.data.take();
-        let (model, opts, loading_as_noise) = (self.model, self.opts, self.loading_as_noise);
+        let (model, opts, loading_as_noise) =
+            (self.model.clone(), self.opts, self.loading_as_noise);
         let loading = self.filter.loading();
         let failure = match self.backward_pass(keep_gains) {
             Ok(smoothed) => return Ok(smoothed),
@@ -137,7 +138,7 @@ impl Smoother for JointSmoother<'_> {
                 loading: Some(retry),
                 ..opts
             };
-            let mut smoother = JointSmoother::new(model, opts)?;
+            let mut smoother = JointSmoother::new(&model, opts)?;
             smoother.loading_as_noise = loading_as_noise;
             for (y, u) in data.y.iter().zip(&data.u) {
                 smoother.step(y, u)?;
@@ -161,10 +162,10 @@ impl Smoother for JointSmoother<'_> {
     }
 }
 
-impl JointSmoother<'_> {
+impl JointSmoother {
     /// The backward pass of docs/theory.md §9 `joint` over the stored forward pass.
     fn backward_pass(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);
         let k = self.filter.band();
         let loading = self.filter.loading();

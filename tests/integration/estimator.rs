@@ -459,7 +459,7 @@ fn shared_recursions_equal_per_subsystem_ones() {
                 second_moment,
                 ..TwoStepOptions::default()
             };
-            type Fixed<'m> = TwoStepFilter<'m, sisfilt::filter::kernel::FixedKernel<2, 1>>;
+            type Fixed = TwoStepFilter<sisfilt::filter::kernel::FixedKernel<2, 1>>;
             let fixed = Fixed::with_kernel(&model, opts).unwrap();
             let sharing = fixed.sharing();
             assert_eq!(

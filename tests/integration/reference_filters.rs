@@ -469,7 +469,7 @@ fn lifted_equals_local_second_moment_without_coupling() {
 }
 
 /// The distributed filter with the mixture update (docs/theory.md §10) and `options`.
-fn mixture_filter(model: &Model) -> TwoStepFilter<'_> {
+fn mixture_filter(model: &Model) -> TwoStepFilter {
     let opts = TwoStepOptions {
         update: Update::Mixture,
         ..TwoStepOptions::default()

@@ -323,3 +323,43 @@ fn a_model_built_in_code_equals_the_one_read_from_the_same_toml() {
         "{refused_code}"
     );
 }
+
+/// A filter and a smoother keep a share of their model and borrow nothing: built from a model
+/// that is dropped at once, they run as the ones built from a model that lives on.
+#[test]
+fn filters_and_smoothers_outlive_the_model_they_were_built_from() {
+    let model = shipped_model("platoon.toml");
+    let run = crate::common::simulate_steps(&model, 20, 4);
+    let spec = RunSpec {
+        filter: FilterKind::Joint,
+        update: Update::Mixture,
+        ..RunSpec::default()
+    }
+    .check()
+    .unwrap();
+    let (mut kept, kept_smoother) = {
+        let short_lived = shipped_model("platoon.toml");
+        (
+            spec.build_filter(&short_lived).unwrap(),
+            spec.build_smoother(&short_lived).unwrap(),
+        )
+    };
+    let (mut fresh, mut fresh_smoother) = (
+        spec.build_filter(&model).unwrap(),
+        spec.build_smoother(&model).unwrap(),
+    );
+    let mut kept_smoother = kept_smoother;
+    for (y, u) in run.y.iter().zip(&run.u) {
+        kept.step(y, u).unwrap();
+        fresh.step(y, u).unwrap();
+        assert_eq!(kept.filtered(), fresh.filtered());
+        kept_smoother.step(y, u).unwrap();
+        fresh_smoother.step(y, u).unwrap();
+    }
+    let (a, b) = (
+        kept_smoother.finish().unwrap(),
+        fresh_smoother.finish().unwrap(),
+    );
+    assert_eq!(a.x, b.x);
+    assert_eq!(a.p, b.p);
+}

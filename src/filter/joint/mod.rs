@@ -256,8 +256,8 @@ struct Mixture {
 }
 
 /// The joint band-k filter's state between time steps.
-pub struct JointFilter<'m> {
-    model: &'m Model,
+pub struct JointFilter {
+    model: Model,
     known: bool,
     k: usize,
     loading: f64,
@@ -298,9 +298,9 @@ pub struct JointFilter<'m> {
     pub(crate) kept_precisions: Option<(SymBand, SymBand)>,
 }
 
-impl<'m> JointFilter<'m> {
+impl JointFilter {
     /// Starts from `X̂⁻(1) = [m0; …; m0]`, `P⁻(1) = blkdiag(P0)` (and the same moments).
-    pub fn new(model: &'m Model, opts: JointOptions) -> Result<Self> {
+    pub fn new(model: &Model, opts: JointOptions) -> Result<Self> {
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
         opts.check()?;
         let known = opts.dropouts == Dropouts::Known;
@@ -344,7 +344,7 @@ impl<'m> JointFilter<'m> {
         let mut block_pred = vec![0.0; big_n * n * n];
         diagonal_blocks(&p_pred, &mut block_pred);
         Ok(Self {
-            model,
+            model: model.clone(),
             known,
             k,
             loading,
@@ -418,7 +418,7 @@ impl<'m> JointFilter<'m> {
     /// The information of every subsystem's measurement: `Φ_i` added to `lambda`'s diagonal
     /// blocks and `r_i` into `self.r` (update step 2).
     fn measurement_information(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, q, m) = (model.dims.n, model.dims.q, model.dims.m);
         let window = model.window(self.t);
         self.measurement_log_density = 0.0;
@@ -516,7 +516,7 @@ impl<'m> JointFilter<'m> {
 
     /// Predict step 5 (`band` moments) and the other moment recursions, from `t` to `t + 1`.
     fn propagate_moments(&mut self, u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, t) = (model.dims.n, self.t);
         match &mut self.moments {
             Moments::None => {}
@@ -634,9 +634,9 @@ pub(crate) fn band_error(
     }
 }
 
-impl ChainFilter for JointFilter<'_> {
+impl ChainFilter for JointFilter {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.model;
+        let model = &self.model.clone();
         let (n, big_n, t) = (model.dims.n, model.subsystems, self.t);
         // Update (docs/theory.md §8 update steps 1–7).
         load_diagonal(&mut self.p_pred, self.loading);
@@ -722,7 +722,7 @@ impl ChainFilter for JointFilter<'_> {
     }
 }
 
-impl JointFilter<'_> {
+impl JointFilter {
     /// The log density of this step's measurements (docs/theory.md §10), after the solve. With
     /// known dropouts, exact for the filter's prior `N(X̂⁻, Σ̃)` (`Σ̃` the completion of the
     /// band, `Λ⁻ = Σ̃⁻¹`): `S = 𝒥 Σ̃ 𝒥ᵀ + ℳ` has `log det S = log det ℳ + log det Σ̃ +

@@ -23,12 +23,12 @@ struct ScheduledStep {
 /// moment, stored per step. It depends on the model and the inputs only, not on the
 /// measurements (docs/theory.md §8), so `evaluate` computes it once and replays it for every run with
 /// [`ScheduledJoint`], which costs a banded solve and a chain solve per step.
-pub struct JointSchedule<'m> {
-    model: &'m Model,
+pub struct JointSchedule {
+    model: Model,
     steps: Vec<ScheduledStep>,
 }
 
-impl<'m> JointSchedule<'m> {
+impl JointSchedule {
     /// Bytes a schedule of `steps` steps needs with band `k`.
     pub fn bytes(model: &Model, k: usize, steps: usize) -> usize {
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
@@ -37,7 +37,7 @@ impl<'m> JointSchedule<'m> {
     }
 
     /// Runs the covariance pass for the inputs `u[t]` (`N·m` values per step).
-    pub fn new(model: &'m Model, opts: JointOptions, u: &[Vec<f64>]) -> Result<Self> {
+    pub fn new(model: &Model, opts: JointOptions, u: &[Vec<f64>]) -> Result<Self> {
         if opts.dropouts == Dropouts::Known
             || opts.second_moment == SecondMoment::Local
             || opts.update == Update::Mixture
@@ -60,14 +60,17 @@ impl<'m> JointSchedule<'m> {
                 block_pred: filter.block_pred.clone(),
             });
         }
-        Ok(Self { model, steps })
+        Ok(Self {
+            model: model.clone(),
+            steps,
+        })
     }
 }
 
 /// The joint filter replayed from a [`JointSchedule`]: only the means are computed. Equal to
 /// [`JointFilter`] with the same options.
-pub struct ScheduledJoint<'s, 'm> {
-    sched: &'s JointSchedule<'m>,
+pub struct ScheduledJoint<'s> {
+    sched: &'s JointSchedule,
     t: usize,
     solver: ChainSolver,
     x_pred: Vec<f64>,
@@ -77,9 +80,9 @@ pub struct ScheduledJoint<'s, 'm> {
     lifted_ws: LiftedWorkspace,
 }
 
-impl<'s, 'm> ScheduledJoint<'s, 'm> {
-    pub fn new(sched: &'s JointSchedule<'m>) -> Result<Self> {
-        let model = sched.model;
+impl<'s> ScheduledJoint<'s> {
+    pub fn new(sched: &'s JointSchedule) -> Result<Self> {
+        let model = &sched.model;
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
         let x: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
         Ok(Self {
@@ -95,9 +98,9 @@ impl<'s, 'm> ScheduledJoint<'s, 'm> {
     }
 }
 
-impl ChainFilter for ScheduledJoint<'_, '_> {
+impl ChainFilter for ScheduledJoint<'_> {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = self.sched.model;
+        let model = &self.sched.model;
         let (n, q) = (model.dims.n, model.dims.q);
         let t = self.t;
         let Some(step) = self.sched.steps.get(t - 1) else {
