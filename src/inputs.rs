@@ -1,9 +1,12 @@
-//! The inputs `u(t, ·)`, one time step at a time: generated from the config's `[input]`, or
-//! read from an inputs CSV (docs/theory.md §13), which must hold exactly the steps `1..T`.
+//! The inputs `u(t, ·)`, one time step at a time: generated from the config's `[input]`, read
+//! from an inputs CSV (docs/theory.md §13), which must hold exactly the steps `1..T`, or taken
+//! from an array in memory. [`RunInputs`] are the inputs of a whole run known before it starts,
+//! which a front end resolves (a file is read at the edge, never opened by a run).
 
 use std::fs::File;
 use std::io::Read;
 use std::path::Path;
+use std::sync::Arc;
 
 use crate::error::{Error, Result};
 use crate::io::{StepLayout, StepReader};
@@ -15,6 +18,84 @@ pub enum InputStream {
     Generated { spec: InputSpec, m: usize },
     /// Read from a CSV file.
     File(Box<StepReader<Box<dyn Read + Send>>>),
+    /// Taken from an array in memory: `per_step` values a step, step after step.
+    Table { values: Arc<[f64]>, per_step: usize },
+}
+
+/// The inputs of every step of a run, known before it starts: generated from the config's
+/// `[input]`, or a table in memory (an inputs file read by the front end, or its own array).
+/// Each run reads them through a fresh [`RunInputs::stream`].
+#[derive(Debug, Clone)]
+pub enum RunInputs {
+    Generated { spec: InputSpec, m: usize },
+    Table { values: Arc<[f64]>, per_step: usize },
+}
+
+impl RunInputs {
+    /// The inputs the model's `[input]` generates; a model whose inputs are a file is refused,
+    /// since the file is the front end's to read ([`RunInputs::read`]).
+    pub fn generated(model: &Model) -> Result<Self> {
+        if let Some(path) = InputStream::path(model, None) {
+            return Err(Error::Usage(format!(
+                "the inputs of {} are the file {}: read them first (RunInputs::read) or pass them as an array",
+                model.name,
+                path.display()
+            )));
+        }
+        Ok(Self::Generated {
+            spec: model.input.clone(),
+            m: model.dims.m,
+        })
+    }
+
+    /// The inputs of `model` as an array: `T × N × m` values, step after step and subsystem
+    /// after subsystem.
+    pub fn table(model: &Model, values: Vec<f64>) -> Result<Self> {
+        let per_step = model.subsystems * model.dims.m;
+        if per_step == 0 && !values.is_empty()
+            || per_step > 0 && !values.len().is_multiple_of(per_step)
+        {
+            return Err(Error::Usage(format!(
+                "u: expected T × N × m values with N = {}, m = {}, found {}",
+                model.subsystems,
+                model.dims.m,
+                values.len()
+            )));
+        }
+        Ok(Self::Table {
+            values: values.into(),
+            per_step,
+        })
+    }
+
+    /// The first `steps` steps of `stream` (e.g. the model's inputs file, opened by
+    /// [`InputStream::open`]), read into memory as far as the stream goes.
+    pub fn read(mut stream: InputStream, model: &Model, steps: usize) -> Result<Self> {
+        let per_step = model.subsystems * model.dims.m;
+        let mut values = Vec::new();
+        if per_step > 0 {
+            let mut u = vec![0.0; per_step];
+            for t in 1..=steps {
+                stream.next(t, &mut u)?;
+                values.extend_from_slice(&u);
+            }
+        }
+        Self::table(model, values)
+    }
+
+    /// A stream of these inputs from step 1.
+    pub fn stream(&self) -> InputStream {
+        match self {
+            Self::Generated { spec, m } => InputStream::Generated {
+                spec: spec.clone(),
+                m: *m,
+            },
+            Self::Table { values, per_step } => InputStream::Table {
+                values: values.clone(),
+                per_step: *per_step,
+            },
+        }
+    }
 }
 
 /// Opens a CSV of the given layout: a path, or `-` for standard input.
@@ -74,6 +155,18 @@ impl InputStream {
                 }
                 Ok(())
             }
+            InputStream::Table { values, per_step } => {
+                match values.get((t - 1) * *per_step..t * *per_step) {
+                    Some(step) => u.copy_from_slice(step),
+                    None => {
+                        return Err(Error::Usage(format!(
+                            "u: holds {} steps, but inputs are needed up to t = {t}",
+                            values.len() / (*per_step).max(1)
+                        )));
+                    }
+                }
+                Ok(())
+            }
             InputStream::File(r) => match r.read_step(u)? {
                 Some(_) => Ok(()),
                 None => Err(Error::File {
@@ -92,7 +185,7 @@ impl InputStream {
     pub fn read_beyond(&self, steps: usize) -> Option<Error> {
         match self {
             InputStream::File(r) => Some(too_long(r.name(), steps)),
-            InputStream::Generated { .. } => None,
+            InputStream::Generated { .. } | InputStream::Table { .. } => None,
         }
     }
 

@@ -12,7 +12,7 @@ use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
 
 use super::choice::choice;
-use super::{config_files, in_flag_words, print_line};
+use super::{config_files, in_flag_words, print_line, run_inputs};
 
 #[derive(Debug, clap::Args)]
 pub struct EvaluateArgs {
@@ -104,9 +104,11 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         model.subsystems,
         rayon::current_num_threads()
     ));
+    let inputs = run_inputs(&model)?;
     if let Some(values) = sweep {
-        let result = sisfilt::evaluate::sweep_p(&model, &config_name, opts, values, || bar.inc(1))
-            .map_err(in_flag_words)?;
+        let result =
+            sisfilt::evaluate::sweep_p(&model, &inputs, &config_name, opts, values, || bar.inc(1))
+                .map_err(in_flag_words)?;
         bar.finish_and_clear();
         info(format!("evaluate: {:.2} s", result.total_wall_time_s));
         for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
@@ -115,7 +117,7 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         write_json(out, &result)?;
         return print_line(result.table().trim_end_matches('\n'));
     }
-    let result = sisfilt::evaluate::evaluate(&model, &config_name, opts, || bar.inc(1))
+    let result = sisfilt::evaluate::evaluate(&model, &inputs, &config_name, opts, || bar.inc(1))
         .map_err(in_flag_words)?;
     bar.finish_and_clear();
     info(format!(

@@ -24,7 +24,7 @@ use crate::filter::{
     CentralizedSchedule, ChainFilter, JointFilter, JointOptions, ScheduledCentralized, Update,
     check_estimates,
 };
-use crate::inputs::InputStream;
+use crate::inputs::RunInputs;
 use crate::model::Model;
 use crate::simulate::simulate;
 use crate::smoother::{Smoother, SmootherSchedule};
@@ -112,7 +112,7 @@ struct Realisation {
     gamma: Vec<Vec<f64>>,
 }
 
-fn realise(model: &Model, seed: u64) -> Result<Realisation> {
+fn realise(model: &Model, inputs: &RunInputs, seed: u64) -> Result<Realisation> {
     let q = model.dims.q;
     let mut r = Realisation {
         x: vec![],
@@ -121,8 +121,7 @@ fn realise(model: &Model, seed: u64) -> Result<Realisation> {
         u: vec![],
         gamma: vec![],
     };
-    let mut inputs = InputStream::open(model, None)?;
-    simulate(model, model.steps, seed, &mut inputs, |s| {
+    simulate(model, model.steps, seed, &mut inputs.stream(), |s| {
         r.x.push(s.x.to_vec());
         r.y.push(s.y.to_vec());
         let mut yk = s.y.to_vec();
@@ -288,6 +287,7 @@ type RunResult = Vec<(Result<Scores, String>, f64)>;
 /// with another `p`) and every active filter of `model` on it.
 fn run_filters(
     model: &Model,
+    inputs: &RunInputs,
     truth: &Model,
     opts: &EvaluateOptions,
     active: &[bool],
@@ -298,7 +298,7 @@ fn run_filters(
         run: r + 1,
         error: Box::new(error),
     };
-    let data = realise(truth, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
+    let data = realise(truth, inputs, opts.seed.wrapping_add(r as u64)).map_err(in_run)?;
     let (n, big_n) = (model.dims.n, model.subsystems);
     let mut out = Vec::with_capacity(COMPARED);
     for name in Compared::all() {
@@ -398,9 +398,11 @@ fn run_filters(
     Ok(out)
 }
 
-/// Runs the Monte Carlo comparison; `tick` is called once per finished run.
+/// Runs the Monte Carlo comparison with the inputs `inputs` in every run (at least `T` steps of
+/// them); `tick` is called once per finished run.
 pub fn evaluate(
     model: &Model,
+    inputs: &RunInputs,
     config: &str,
     opts: EvaluateOptions,
     tick: impl Fn() + Sync,
@@ -466,10 +468,10 @@ pub fn evaluate(
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();
     // The unknown-dropout covariance passes of the centralized and the joint filter do not
     // depend on the data (the inputs are the same in every run): compute them once.
-    let mut inputs = InputStream::open(model, None)?;
+    let mut stream = inputs.stream();
     let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; model.steps];
     for (t, ut) in u.iter_mut().enumerate() {
-        inputs.next(t + 1, ut)?;
+        stream.next(t + 1, ut)?;
     }
     // A smoother replays the means of its filter, so that filter's schedule is needed too.
     let needed = |filter: Compared| {
@@ -507,7 +509,7 @@ pub fn evaluate(
     let results: Vec<RunResult> = (0..opts.runs)
         .into_par_iter()
         .map(|r| {
-            let res = run_filters(model, truth, &opts, &active, &schedules, r);
+            let res = run_filters(model, inputs, truth, &opts, &active, &schedules, r);
             tick();
             res
         })
@@ -603,6 +605,7 @@ pub struct Sweep {
 /// with `opts.true_p` in the filters only; `tick` is called once per finished run.
 pub fn sweep_p(
     model: &Model,
+    inputs: &RunInputs,
     config: &str,
     opts: EvaluateOptions,
     values: &[f64],
@@ -624,6 +627,7 @@ pub fn sweep_p(
         .map(|&p| {
             evaluate(
                 &model.with_arrival_probability(p),
+                inputs,
                 config,
                 opts.clone(),
                 &tick,

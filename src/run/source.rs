@@ -4,7 +4,7 @@
 use std::io::Read;
 
 use crate::error::{Error, Result};
-use crate::inputs::InputStream;
+use crate::inputs::{InputStream, RunInputs};
 use crate::io::StepReader;
 use crate::model::Model;
 
@@ -83,19 +83,19 @@ impl<R: Read + Send> StepSource for FileSource<R> {
 }
 
 /// Measurements and inputs held in memory: `y` with `T × N × q` values, step after step and
-/// subsystem after subsystem, and `u` with `T × N × m` (or the model's own inputs).
+/// subsystem after subsystem, and the inputs of those steps.
 pub struct ArraySource<'a> {
     y: &'a [f64],
-    u: Option<&'a [f64]>,
-    /// The model's inputs, when `u` is not given.
     inputs: InputStream,
     steps: usize,
     t: usize,
 }
 
 impl<'a> ArraySource<'a> {
-    /// Refuses arrays whose lengths are not whole steps of `model`, or disagree in `T`.
-    pub fn new(model: &Model, y: &'a [f64], u: Option<&'a [f64]>) -> Result<Self> {
+    /// Refuses arrays whose lengths are not whole steps of `model`, or disagree in `T`. `u`
+    /// holds `T × N × m` values; without it, the inputs the model generates (a model whose
+    /// inputs are a file needs `u`: [`RunInputs::generated`]).
+    pub fn new(model: &Model, y: &'a [f64], u: Option<&[f64]>) -> Result<Self> {
         let big_n = model.subsystems;
         let step_y = big_n * model.dims.q;
         if step_y == 0 || !y.len().is_multiple_of(step_y) {
@@ -116,10 +116,13 @@ impl<'a> ArraySource<'a> {
                 u.len()
             )));
         }
+        let inputs = match u {
+            Some(u) => RunInputs::table(model, u.to_vec())?,
+            None => RunInputs::generated(model)?,
+        };
         Ok(Self {
             y,
-            u,
-            inputs: InputStream::open(model, None)?,
+            inputs: inputs.stream(),
             steps,
             t: 0,
         })
@@ -134,10 +137,7 @@ impl StepSource for ArraySource<'_> {
         let k = self.t;
         self.t += 1;
         y.copy_from_slice(&self.y[k * y.len()..(k + 1) * y.len()]);
-        match self.u {
-            Some(all) => u.copy_from_slice(&all[k * u.len()..(k + 1) * u.len()]),
-            None => self.inputs.next(self.t, u)?,
-        }
+        self.inputs.next(self.t, u)?;
         Ok(Some(self.t))
     }
 

@@ -332,6 +332,7 @@ fn uncoupled_chain_equals_two_step_filter() {
 #[test]
 fn joint_filter_matches_the_optimum_in_monte_carlo() {
     use sisfilt::evaluate::{Compared, EvaluateOptions, evaluate};
+    use sisfilt::inputs::RunInputs;
     for name in ["platoon.toml", "heat_rod.toml", "paper.toml"] {
         let model = shipped_model(name);
         let opts = EvaluateOptions {
@@ -349,7 +350,14 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
             smooth: false,
             true_p: None,
         };
-        let ev = evaluate(&model, name, opts, || {}).unwrap();
+        let ev = evaluate(
+            &model,
+            &RunInputs::generated(&model).unwrap(),
+            name,
+            opts,
+            || {},
+        )
+        .unwrap();
         let get = |f: Compared| {
             let r = ev.filters.iter().find(|r| r.name == f).unwrap();
             let a = r.accuracy.as_ref().unwrap();

@@ -10,6 +10,7 @@ use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
     TwoStepFilter, TwoStepOptions, Update, two_step,
 };
+use sisfilt::inputs::RunInputs;
 use sisfilt::lifted::{LiftedMoments, LiftedSystem};
 use sisfilt::model::Model;
 
@@ -323,7 +324,14 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         smooth: false,
         true_p: None,
     };
-    let ev = evaluate(&model, "platoon", opts, || {}).unwrap();
+    let ev = evaluate(
+        &model,
+        &RunInputs::generated(&model).unwrap(),
+        "platoon",
+        opts,
+        || {},
+    )
+    .unwrap();
     let ratio = |name: &str| {
         ev.filters
             .iter()
@@ -366,7 +374,14 @@ fn mixture_against_nahi(name: &str, steps: usize, runs: usize, true_p: Option<f6
         smooth: false,
         true_p,
     };
-    evaluate(&model, name, opts, || {}).unwrap()
+    evaluate(
+        &model,
+        &RunInputs::generated(&model).unwrap(),
+        name,
+        opts,
+        || {},
+    )
+    .unwrap()
 }
 
 /// The mixture update (docs/theory.md §10) beats the optimal linear filter: on the platoon

@@ -363,3 +363,90 @@ fn filters_and_smoothers_outlive_the_model_they_were_built_from() {
     assert_eq!(a.x, b.x);
     assert_eq!(a.p, b.p);
 }
+
+/// Inputs given as an array run as the inputs the model generates, and a model whose inputs
+/// are a file is not opened by the run: it asks for the array.
+#[test]
+fn inputs_as_an_array_equal_the_generated_ones_and_files_are_read_at_the_edge() {
+    let model = shipped_model("heat_rod.toml");
+    let run = crate::common::simulate_steps(&model, 30, 8);
+    let y: Vec<f64> = run.y.concat();
+    // The config's sine, u(t, i) = a sin(2π t / period + phase i), written out here.
+    let (a, period, phase) = (10.0_f64, 100.0_f64, 0.2_f64);
+    let m = model.dims.m;
+    let mut u = Vec::new();
+    for t in 1..=30 {
+        for i in 1..=model.subsystems {
+            let value =
+                a * (2.0 * std::f64::consts::PI * t as f64 / period + phase * i as f64).sin();
+            u.extend(std::iter::repeat_n(value, m));
+        }
+    }
+    let spec = RunSpec::default().check().unwrap();
+    let generated = estimate(&model, &spec, &y, None, None).unwrap();
+    let given = estimate(&model, &spec, &y, Some(&u), None).unwrap();
+    for (g, h) in generated.x.iter().zip(&given.x) {
+        assert!((g - h).abs() <= 1e-12 * g.abs().max(1.0), "{g} {h}");
+    }
+    let refused = estimate(&model, &spec, &y, Some(&u[1..]), None).unwrap_err();
+    assert!(
+        refused.to_string().starts_with("u: expected T × N × m"),
+        "{refused}"
+    );
+
+    let tmp = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(shipped_config("heat_rod.toml")).unwrap();
+    let text = text.replace("kind = \"sine\"", "kind = \"file\"\npath = \"u.csv\"");
+    let from_file = sisfilt::model::Model::from_toml_str("rod", tmp.path(), &text).unwrap();
+    let refused = estimate(&from_file, &spec, &y, None, None).unwrap_err();
+    assert!(refused.to_string().contains("u.csv"), "{refused}");
+}
+
+/// `evaluate` on a config whose inputs are a file (read once, at the edge) gives the figures
+/// of the same config with the generated inputs that file holds.
+#[test]
+fn evaluate_reads_an_inputs_file_once_and_scores_as_with_generated_inputs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = shipped_config("platoon.toml");
+    sisfilt()
+        .args(["-q", "simulate"])
+        .arg(&config)
+        .arg("--out")
+        .arg(tmp.path())
+        .assert()
+        .success();
+    let text = std::fs::read_to_string(&config).unwrap();
+    let file_config = tmp.path().join("file_inputs.toml");
+    std::fs::write(
+        &file_config,
+        text.replace("kind = \"sine\"", "kind = \"file\"\npath = \"inputs.csv\""),
+    )
+    .unwrap();
+    let figures = |config: &Path, out: &str| -> serde_json::Value {
+        let out = tmp.path().join(out);
+        sisfilt()
+            .args(["-q", "evaluate"])
+            .arg(config)
+            .args([
+                "--runs",
+                "3",
+                "--filters",
+                "distributed,joint-mixture,centralized",
+                "--out",
+            ])
+            .arg(&out)
+            .assert()
+            .success();
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
+        json["filters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["accuracy"].clone())
+            .collect()
+    };
+    let (generated, read) = (figures(&config, "g.json"), figures(&file_config, "f.json"));
+    assert_eq!(generated, read);
+    assert!(generated[0]["rmse_overall"].as_f64().unwrap() > 0.0);
+}
