@@ -4,7 +4,6 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use sha2::Digest;
 
 use sisfilt::accuracy::AccuracyReport;
 use sisfilt::config::ConfigSource;
@@ -13,8 +12,7 @@ use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Upda
 use sisfilt::inputs::{InputStream, open_csv};
 use sisfilt::interconnect::SolverKind;
 use sisfilt::io::estimates::{
-    BackgroundWriter, ConfigRef, EstimateKind, EstimatesMetadata, EstimatesSummary,
-    EstimatesWriter, Format,
+    BackgroundWriter, EstimateKind, EstimatesMetadata, EstimatesSummary, EstimatesWriter, Format,
 };
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
@@ -169,13 +167,6 @@ fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>
     Ok((record.config_source(&dir.join(RunRecord::FILE))?, Some(dir)))
 }
 
-fn sha256_hex(text: &str) -> String {
-    sha2::Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
-
 /// `sisfilt estimate`: the estimates of every `(t, i)`, written as they come (or, with
 /// `--smooth`, after the backward pass).
 pub fn run(args: &EstimateArgs) -> Result<()> {
@@ -231,7 +222,14 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         .transpose()?;
     // Open the output before the long run, so that a bad path fails fast.
     let output = Output::create(&args.out)?;
-    let metadata = metadata(args, &spec, &src, inputs_file.as_deref(), &model);
+    let inputs_name = inputs_file.as_ref().map(|p| p.display().to_string());
+    let metadata = EstimatesMetadata::new(
+        &src,
+        &model,
+        spec.recorded(&model),
+        &args.meas.display().to_string(),
+        inputs_name.as_deref(),
+    );
     let out_name = args.out.display().to_string();
     let writer = EstimatesWriter::new(output, args.format(), spec.columns(&model), Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?;
@@ -297,28 +295,6 @@ impl EstimateSink for WriterSink {
 
     fn note(&mut self, note: &str) {
         warn(note);
-    }
-}
-
-/// The metadata at the head of an estimates JSON file.
-fn metadata(
-    args: &EstimateArgs,
-    spec: &CheckedSpec,
-    src: &ConfigSource,
-    inputs_file: Option<&std::path::Path>,
-    model: &Model,
-) -> EstimatesMetadata {
-    EstimatesMetadata {
-        config: ConfigRef {
-            path: src.name.clone(),
-            sha256: sha256_hex(&src.text),
-        },
-        inputs: inputs_file.map(|p| p.display().to_string()),
-        measurements: args.meas.display().to_string(),
-        n: model.dims.n,
-        options: spec.recorded(model),
-        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
-        subsystems: model.subsystems,
     }
 }
 

@@ -14,10 +14,12 @@ use crate::linalg::band::SymBand;
 use rayon::prelude::*;
 
 use crate::choice::{Choice, Variant};
+use crate::config::ConfigSource;
 use crate::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use crate::interconnect::SolverKind;
 use crate::io::Output;
 use crate::io::csv_out::NumberFormat;
+use crate::model::Model;
 
 /// Output format of `estimate`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -71,11 +73,48 @@ pub struct EstimatesMetadata {
     pub subsystems: usize,
 }
 
+impl EstimatesMetadata {
+    /// The metadata of a run on `model`, made from `config`, with the options `options` (as
+    /// [`crate::run::CheckedSpec::recorded`] gives them), on the measurements and inputs named
+    /// (`None`: the inputs the config generates).
+    pub fn new(
+        config: &ConfigSource,
+        model: &Model,
+        options: EstimateOptions,
+        measurements: &str,
+        inputs: Option<&str>,
+    ) -> Self {
+        Self {
+            config: ConfigRef::of(config),
+            inputs: inputs.map(str::to_string),
+            measurements: measurements.to_string(),
+            n: model.dims.n,
+            options,
+            sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
+            subsystems: model.subsystems,
+        }
+    }
+}
+
 /// The config a run used: its name and the SHA-256 of its text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ConfigRef {
     pub path: String,
     pub sha256: String,
+}
+
+impl ConfigRef {
+    /// The name of `config` and the SHA-256 of its text, in hexadecimal.
+    pub fn of(config: &ConfigSource) -> Self {
+        use sha2::Digest;
+        Self {
+            path: config.name.clone(),
+            sha256: sha2::Sha256::digest(config.text.as_bytes())
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect(),
+        }
+    }
 }
 
 /// The options of an `estimate` run.
