@@ -80,6 +80,11 @@ cases() {
     echo "bad-max-memory-small estimate $m --smooth --max-memory 1K"
     echo "bad-eval-loading evaluate configs/platoon.toml --runs 1 --loading=-1"
     echo "bad-eval-burn-in evaluate configs/platoon.toml --runs 1 --burn-in 100000"
+    echo "bad-eval-runs evaluate configs/platoon.toml --runs 0"
+    echo "bad-eval-true-p evaluate configs/platoon.toml --runs 1 --true-p 1.5"
+    echo "bad-eval-sweep evaluate configs/platoon.toml --runs 1 --sweep-p 0.5,1.5"
+    echo "bad-smooth-memory estimate $m --smooth --max-memory 10K"
+    echo "bad-predicted-one-step estimate $m --predicted --truth $sim/truth.csv --filter joint"
 }
 
 # The shared inputs, made once by the baseline binary.

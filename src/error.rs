@@ -46,6 +46,10 @@ pub enum Error {
     #[error(transparent)]
     Spec(#[from] crate::run::SpecError),
 
+    /// The settings of an evaluation cannot serve ([`crate::evaluate::EvaluateError`]).
+    #[error(transparent)]
+    Evaluate(#[from] crate::evaluate::EvaluateError),
+
     /// A run cannot go on for a reason its settings name ([`crate::run::RunError`]).
     #[error(transparent)]
     Run(#[from] crate::run::RunError),

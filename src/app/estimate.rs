@@ -10,7 +10,7 @@ use sisfilt::config::ConfigSource;
 use sisfilt::error::Error;
 use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use sisfilt::inputs::{InputStream, open_csv};
-use sisfilt::interconnect::SolverKind;
+use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
 use sisfilt::io::estimates::{
     BackgroundWriter, EstimateKind, EstimatesMetadata, EstimatesSummary, EstimatesWriter, Format,
 };
@@ -18,7 +18,7 @@ use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
 use sisfilt::model::Model;
 use sisfilt::run::{
-    CheckedSpec, EstimateSink, FileSource, ReaderTruth, RunSpec, StepEstimates, Timings,
+    CheckedSpec, EstimateSink, FileSource, Note, ReaderTruth, RunSpec, StepEstimates, Timings,
     TruthSource,
 };
 
@@ -293,8 +293,20 @@ impl EstimateSink for WriterSink {
             .map_err(|e| Error::io(&self.out_name, e))
     }
 
-    fn note(&mut self, note: &str) {
-        warn(note);
+    fn note(&mut self, note: Note) {
+        warn(note_in_flag_words(&note));
+    }
+}
+
+/// A run's note in the command line's words: the flags of the settings it names.
+fn note_in_flag_words(note: &Note) -> String {
+    match note {
+        Note::OverconfidentDistributed => "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)".into(),
+        Note::OverconfidentDistributedSmoother => "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy".into(),
+        Note::InaccurateTransfer { error, t } => format!(
+            "the transfer solver's estimated relative error is {error:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use --solver banded"
+        ),
+        Note::Unstable { .. } | Note::Smoother(_) => note.to_string(),
     }
 }
 

@@ -22,6 +22,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 use sisfilt::error::Error;
+use sisfilt::evaluate::EvaluateError;
 use sisfilt::inputs::{InputStream, RunInputs};
 use sisfilt::io::{Output, Role};
 use sisfilt::model::Model;
@@ -143,8 +144,8 @@ fn config_files<'a>(config: &'a Path, model: &'a Model) -> Vec<Role<'a>> {
     read
 }
 
-/// A library error in the command line's words: a [`SpecError`] or a [`RunError`] names the
-/// flags of its settings; every other error is left as it is.
+/// A library error in the command line's words: a [`SpecError`], a [`RunError`] or an
+/// [`EvaluateError`] names the flags of its settings; every other error is left as it is.
 fn in_flag_words(e: impl Into<Error>) -> Error {
     let flag = |setting: Setting| match setting {
         Setting::Band => "--band",
@@ -168,6 +169,21 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
             human_bytes(need),
             human_bytes(limit)
         ),
+        Error::Evaluate(EvaluateError::NoRuns) => "--runs must be at least 1".into(),
+        Error::Evaluate(EvaluateError::NothingAfterBurnIn {
+            burn_in,
+            config,
+            steps,
+        }) => format!(
+            "--burn-in {burn_in} leaves no step to score: {config} has T = {steps} steps; choose a burn-in below T"
+        ),
+        Error::Evaluate(EvaluateError::TrueP(p)) => {
+            format!("--true-p: expected a probability in [0, 1], found {p}")
+        }
+        Error::Evaluate(EvaluateError::EmptySweep) => "--sweep-p: expected at least one value".into(),
+        Error::Evaluate(EvaluateError::SweepP(p)) => {
+            format!("--sweep-p: expected probabilities in [0, 1], found {p}")
+        }
         Error::Run(RunError::NothingScored) => "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
         other => return other,
     })

@@ -29,6 +29,29 @@ use crate::model::Model;
 use crate::simulate::simulate;
 use crate::smoother::{Smoother, SmootherSchedule};
 
+/// Settings of an evaluation that cannot serve, named by their fields (a front end may put
+/// them in its own words).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EvaluateError {
+    #[error("runs must be at least 1")]
+    NoRuns,
+    /// RMSE and ANEES over no terms would read as a perfect score.
+    #[error(
+        "burn_in = {burn_in} leaves no step to score: {config} has T = {steps} steps; choose a burn-in below T"
+    )]
+    NothingAfterBurnIn {
+        burn_in: usize,
+        config: String,
+        steps: usize,
+    },
+    #[error("true_p: expected a probability in [0, 1], found {0}")]
+    TrueP(f64),
+    #[error("sweep_p: expected at least one value")]
+    EmptySweep,
+    #[error("sweep_p: expected probabilities in [0, 1], found {0}")]
+    SweepP(f64),
+}
+
 /// Settings of an evaluation.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct EvaluateOptions {
@@ -409,19 +432,18 @@ pub fn evaluate(
 ) -> Result<Evaluation> {
     let start = Instant::now();
     if opts.runs == 0 {
-        return Err(Error::Usage("--runs must be at least 1".into()));
+        return Err(EvaluateError::NoRuns.into());
     }
     if opts.burn_in >= model.steps {
-        // RMSE and ANEES over no terms would read as a perfect score.
-        return Err(Error::Usage(format!(
-            "--burn-in {} leaves no step to score: {} has T = {} steps; choose a burn-in below T",
-            opts.burn_in, model.name, model.steps
-        )));
+        return Err(EvaluateError::NothingAfterBurnIn {
+            burn_in: opts.burn_in,
+            config: model.name.clone(),
+            steps: model.steps,
+        }
+        .into());
     }
     if let Some(p) = opts.true_p.filter(|p| !(0.0..=1.0).contains(p)) {
-        return Err(Error::Usage(format!(
-            "--true-p: expected a probability in [0, 1], found {p}"
-        )));
+        return Err(EvaluateError::TrueP(p).into());
     }
     joint_options(&opts)?;
     let truth = opts.true_p.map(|p| model.with_arrival_probability(p));
@@ -613,14 +635,10 @@ pub fn sweep_p(
 ) -> Result<Sweep> {
     let start = Instant::now();
     if values.is_empty() {
-        return Err(Error::Usage(
-            "--sweep-p: expected at least one value".into(),
-        ));
+        return Err(EvaluateError::EmptySweep.into());
     }
-    if let Some(bad) = values.iter().find(|p| !(0.0..=1.0).contains(*p)) {
-        return Err(Error::Usage(format!(
-            "--sweep-p: expected probabilities in [0, 1], found {bad}"
-        )));
+    if let Some(&bad) = values.iter().find(|p| !(0.0..=1.0).contains(*p)) {
+        return Err(EvaluateError::SweepP(bad).into());
     }
     let evaluations = values
         .iter()

@@ -49,6 +49,46 @@ pub enum RunError {
     NothingScored,
 }
 
+/// What a run tells the user as it goes (a warning on a command line). Its text names the
+/// run's settings; a front end may put it in its own words.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Note {
+    /// `Q = 0` on a coupled chain: the distributed filter takes the estimated interconnection
+    /// signals as exact, so its `P` is far too small (docs/theory.md §4).
+    OverconfidentDistributed,
+    /// …and its smoother can be worse than the filter (docs/theory.md §9).
+    OverconfidentDistributedSmoother,
+    /// The spectral radius of `A_eff` is at least 1 (docs/theory.md §3).
+    Unstable { spectral_radius: f64 },
+    /// The transfer solver's estimated relative error passed the warning level at `t`
+    /// (docs/theory.md §2).
+    InaccurateTransfer { error: f64, t: usize },
+    /// What the smoother had to do, in its own words (docs/theory.md §9).
+    Smoother(String),
+}
+
+impl std::fmt::Display for Note {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::OverconfidentDistributed => f.write_str(
+                "Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); filter = joint keeps it honest (docs/theory.md §8)",
+            ),
+            Self::OverconfidentDistributedSmoother => f.write_str(
+                "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); filter = joint with smooth is the remedy",
+            ),
+            Self::Unstable { spectral_radius } => write!(
+                f,
+                "the spectral radius of A_eff is {spectral_radius:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)"
+            ),
+            Self::InaccurateTransfer { error, t } => write!(
+                f,
+                "the transfer solver's estimated relative error is {error:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use solver = banded"
+            ),
+            Self::Smoother(note) => f.write_str(note),
+        }
+    }
+}
+
 /// One step's estimates, as a run hands them to its [`EstimateSink`]: `x̂` (`N·n`), the
 /// diagonal blocks of `P` (`N·n²`, column-major blocks), the covariance band when the filter
 /// keeps one (the joint filter) and `π(t, ·)` with the mixture update.
@@ -66,7 +106,7 @@ pub trait EstimateSink {
     /// The estimates of one step; steps come in order.
     fn step(&mut self, step: &StepEstimates<'_>) -> Result<()>;
     /// A note for the user (a warning on a command line), as soon as it is known.
-    fn note(&mut self, note: &str);
+    fn note(&mut self, note: Note);
 }
 
 /// Wall-clock time a run spent in each phase: reading the inputs (source and truth), filtering
@@ -126,7 +166,7 @@ pub fn stream(
     sink: &mut dyn EstimateSink,
 ) -> Result<RunReport> {
     for note in advice(spec, model)? {
-        sink.note(&note);
+        sink.note(note);
     }
     if spec.output() == EstimateKind::Smoothed {
         let smoother = spec.build_smoother(model)?;
@@ -139,12 +179,12 @@ pub fn stream(
 
 /// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
 /// whose covariance cannot be trusted, an unstable chain.
-pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<String>> {
+pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
     let mut notes = Vec::new();
     if spec.filter_kind() == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
-        notes.push("Q = 0 on a coupled chain: the distributed filter treats the estimated interconnection signals as exact, so its reported covariance P is far too small (docs/theory.md §4); --filter joint keeps it honest (docs/theory.md §8)".to_string());
+        notes.push(Note::OverconfidentDistributed);
         if spec.output() == EstimateKind::Smoothed {
-            notes.push("Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); --filter joint --smooth is the remedy".to_string());
+            notes.push(Note::OverconfidentDistributedSmoother);
         }
     }
     if spec.dropouts() == Dropouts::Unknown
@@ -152,10 +192,9 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<String>> {
     {
         let rho = spectral_radius(model, 1, POWER_STEPS)?;
         if rho.value >= 1.0 {
-            notes.push(format!(
-                "the spectral radius of A_eff is {:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)",
-                rho.value
-            ));
+            notes.push(Note::Unstable {
+                spectral_radius: rho.value,
+            });
         }
     }
     Ok(notes)
@@ -186,10 +225,10 @@ fn run_filter(
         loglik += filter.log_likelihood().unwrap_or(0.0);
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
-            sink.note(&format!(
-                "the transfer solver's estimated relative error is {:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use --solver banded",
-                filter.solver_error_estimate()
-            ));
+            sink.note(Note::InaccurateTransfer {
+                error: filter.solver_error_estimate(),
+                t,
+            });
         }
         let (x, p) = if predicted {
             filter.predicted()
@@ -271,7 +310,7 @@ fn run_smoother(
     timings.read(|| source.finish(steps))?;
     let smoothed = timings.filter(|| smoother.finish())?;
     for note in &smoothed.notes {
-        sink.note(note);
+        sink.note(Note::Smoother(note.clone()));
     }
     let mut scores = Scores::new(n);
     for (idx, (x, p)) in smoothed.x.iter().zip(&smoothed.p).enumerate() {
@@ -308,7 +347,7 @@ pub struct Estimates {
     /// The steps, the log-likelihood, accuracy and detection against the truth.
     pub report: RunReport,
     /// What the user should know (the notes of [`stream`]).
-    pub notes: Vec<String>,
+    pub notes: Vec<Note>,
 }
 
 /// Gathers the steps of a run into [`Estimates`].
@@ -317,7 +356,7 @@ struct Collect {
     x: Vec<f64>,
     p: Vec<f64>,
     arrival: Option<Vec<f64>>,
-    notes: Vec<String>,
+    notes: Vec<Note>,
 }
 
 impl EstimateSink for Collect {
@@ -332,8 +371,8 @@ impl EstimateSink for Collect {
         Ok(())
     }
 
-    fn note(&mut self, note: &str) {
-        self.notes.push(note.to_string());
+    fn note(&mut self, note: Note) {
+        self.notes.push(note);
     }
 }
 

@@ -450,3 +450,26 @@ fn evaluate_reads_an_inputs_file_once_and_scores_as_with_generated_inputs() {
     assert_eq!(generated, read);
     assert!(generated[0]["rmse_overall"].as_f64().unwrap() > 0.0);
 }
+
+/// The notes of a run come as values whose text names settings, not flags: `paper.toml` has
+/// `Q = 0` on a coupled chain, which the distributed filter's covariance cannot take.
+#[test]
+fn a_run_notes_name_settings() {
+    use sisfilt::run::Note;
+    let model = shipped_model("paper.toml");
+    let run = crate::common::simulate_steps(&model, 10, 2);
+    let spec = RunSpec::default().check().unwrap();
+    let done = estimate(&model, &spec, &run.y.concat(), None, None).unwrap();
+    assert_eq!(done.notes, [Note::OverconfidentDistributed]);
+    let text = done.notes[0].to_string();
+    assert!(
+        text.contains("filter = joint") && !text.contains("--"),
+        "{text}"
+    );
+    let joint = RunSpec {
+        filter: FilterKind::Joint,
+        ..RunSpec::default()
+    };
+    let quiet = estimate(&model, &joint.check().unwrap(), &run.y.concat(), None, None).unwrap();
+    assert!(quiet.notes.is_empty(), "{:?}", quiet.notes);
+}
