@@ -62,6 +62,16 @@ impl RunInputs {
                 values.len()
             )));
         }
+        if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+            let m = model.dims.m;
+            return Err(Error::Usage(format!(
+                "u: t = {}, i = {}, element {}: expected a finite number, found {}",
+                k / per_step + 1,
+                k / m % model.subsystems + 1,
+                k % m + 1,
+                values[k]
+            )));
+        }
         Ok(Self::Table {
             values: values.into(),
             per_step,

@@ -14,7 +14,7 @@ pub mod spec;
 
 use std::time::{Duration, Instant};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
 use crate::interconnect::TRANSFER_ERROR_WARNING;
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
@@ -376,6 +376,31 @@ impl EstimateSink for Collect {
     }
 }
 
+/// Refuses a measurement that is not a finite number, but for NaN, a lost element, with known
+/// dropouts (the rule of the measurement file, docs/theory.md §13).
+fn check_measurements(model: &Model, spec: &CheckedSpec, y: &[f64]) -> Result<()> {
+    let lost_allowed = spec.dropouts() == Dropouts::Known;
+    let bad = y
+        .iter()
+        .position(|v| !(v.is_finite() || lost_allowed && v.is_nan()));
+    let Some(k) = bad else {
+        return Ok(());
+    };
+    let (q, big_n) = (model.dims.q, model.subsystems);
+    let hint = if y[k].is_nan() {
+        " (a lost element? dropouts = known skips NaN)"
+    } else {
+        ""
+    };
+    Err(Error::Usage(format!(
+        "y: t = {}, i = {}, element {}: expected a finite number, found {}{hint}",
+        k / (big_n * q) + 1,
+        k / q % big_n + 1,
+        k % q + 1,
+        y[k]
+    )))
+}
+
 /// Runs `spec` on `model` over measurements and inputs held in memory, the whole run into
 /// memory: [`stream`] from an [`ArraySource`] (and a [`SliceTruth`]) into arrays.
 ///
@@ -424,6 +449,7 @@ pub fn estimate(
     u: Option<&[f64]>,
     truth: Option<&[f64]>,
 ) -> Result<Estimates> {
+    check_measurements(model, spec, y)?;
     let mut source = ArraySource::new(model, y, u)?;
     let mut truth = truth.map(|t| SliceTruth::new(model, t)).transpose()?;
     let mut sink = Collect::default();

@@ -393,6 +393,15 @@ fn inputs_as_an_array_equal_the_generated_ones_and_files_are_read_at_the_edge() 
         refused.to_string().starts_with("u: expected T × N × m"),
         "{refused}"
     );
+    let mut bad_u = u.clone();
+    bad_u[m * model.subsystems + 2 * m] = f64::NAN;
+    let refused = estimate(&model, &spec, &y, Some(&bad_u), None).unwrap_err();
+    assert!(
+        refused
+            .to_string()
+            .starts_with("u: t = 2, i = 3, element 1: expected a finite number"),
+        "{refused}"
+    );
 
     let tmp = tempfile::tempdir().unwrap();
     let text = std::fs::read_to_string(shipped_config("heat_rod.toml")).unwrap();
@@ -472,4 +481,36 @@ fn a_run_notes_name_settings() {
     };
     let quiet = estimate(&model, &joint.check().unwrap(), &run.y.concat(), None, None).unwrap();
     assert!(quiet.notes.is_empty(), "{:?}", quiet.notes);
+}
+
+/// Measurements in memory follow the rule of the file: NaN marks a lost element with known
+/// dropouts only, and anything else that is not finite is refused naming `t`, `i` and the
+/// element.
+#[test]
+fn measurements_in_memory_are_checked_as_the_file_is() {
+    let model = shipped_model("platoon.toml");
+    let run = crate::common::simulate_steps(&model, 5, 3);
+    let mut y = run.y.concat();
+    let q = model.dims.q;
+    let (t, i) = (3, 7);
+    y[((t - 1) * model.subsystems + (i - 1)) * q] = f64::NAN;
+    let unknown = RunSpec::default().check().unwrap();
+    let refused = estimate(&model, &unknown, &y, None, None).unwrap_err();
+    assert_eq!(
+        refused.to_string(),
+        "y: t = 3, i = 7, element 1: expected a finite number, found NaN (a lost element? dropouts = known skips NaN)"
+    );
+    let known = RunSpec {
+        dropouts: Dropouts::Known,
+        ..RunSpec::default()
+    };
+    assert!(estimate(&model, &known.check().unwrap(), &y, None, None).is_ok());
+    y[0] = f64::INFINITY;
+    let refused = estimate(&model, &known.check().unwrap(), &y, None, None).unwrap_err();
+    assert!(
+        refused
+            .to_string()
+            .starts_with("y: t = 1, i = 1, element 1: expected a finite number, found inf"),
+        "{refused}"
+    );
 }
