@@ -20,8 +20,10 @@ pub use two_step::{Sharing, TwoStepFilter, two_step};
 
 use crate::error::{Error, Result};
 
-/// A filter over the whole chain, one time step at a time.
-pub trait ChainFilter {
+/// A filter over the whole chain, one time step at a time. `Send`: a filter owns its model and
+/// its state, so it can move to another thread (a scheduler's worker, another language's
+/// object).
+pub trait ChainFilter: Send {
     /// Processes the next time step: `y(t, ·)` (`N·q` values; NaN marks a lost element in the
     /// known-dropout mode) and `u(t, ·)` (`N·m` values).
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()>;

@@ -68,8 +68,9 @@ impl ForwardPass {
     }
 }
 
-/// A smoother: the forward pass, one time step at a time, then the backward pass.
-pub trait Smoother {
+/// A smoother: the forward pass, one time step at a time, then the backward pass. `Send`, as a
+/// [`ChainFilter`](crate::filter::ChainFilter) is.
+pub trait Smoother: Send {
     /// Runs the filter on `y(t, ·)`, `u(t, ·)` and stores what the backward pass needs.
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()>;
     /// Runs the backward pass over the stored steps; with `keep_gains` the result also holds
