@@ -348,8 +348,27 @@ fn joint_options() -> impl Strategy<Value = JointOptions> {
         )
 }
 
+/// The seed of every property's random draws unless `PROPTEST_RNG_SEED` names another: the
+/// suite draws the same chains on every run, so that CI never fails on a draw it has not seen
+/// before (set the variable to explore other draws).
+const PROPERTY_SEED: u64 = 0x5157_f117;
+
+/// proptest's configuration: `cases` cases, drawn from [`PROPERTY_SEED`].
+fn config(cases: u32) -> ProptestConfig {
+    let default = ProptestConfig::default();
+    let rng_seed = match std::env::var_os("PROPTEST_RNG_SEED") {
+        Some(_) => default.rng_seed,
+        None => proptest::test_runner::RngSeed::Fixed(PROPERTY_SEED),
+    };
+    ProptestConfig {
+        cases,
+        rng_seed,
+        ..default
+    }
+}
+
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
+    #![proptest_config(config(256))]
 
     /// On a random stable chain, with any combination of the distributed filter's options,
     /// every reported covariance is finite, symmetric and positive semidefinite, and every
@@ -394,7 +413,7 @@ proptest! {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 128, .. ProptestConfig::default() })]
+    #![proptest_config(config(128))]
 
     /// At full band, with the exact `A_eff` and no loading, the joint filter is the centralized
     /// filter of docs/theory.md §7 (a dense lifted filter in covariance form) on a random
