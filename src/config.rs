@@ -205,12 +205,8 @@ impl ConfigSource {
             key: "config".into(),
             msg: format!("cannot be written as TOML: {e}"),
         })?;
-        Ok(Self {
-            name: name.to_string(),
-            dir,
-            text,
-            raw,
-        })
+        // Read back as any config is: the tables kept are those of the text a record keeps.
+        Self::from_text(name, dir, text)
     }
 
     /// Parses TOML text; `name` appears in every message.

@@ -262,13 +262,18 @@ impl CheckedSpec {
         }
     }
 
+    /// The joint filter's band `k` as it runs on `model`: at most `N − 1`.
+    fn joint_band(&self, model: &Model) -> Option<usize> {
+        self.joint.map(|j| j.band.min(model.subsystems - 1))
+    }
+
     /// The columns of the run's estimates on `model`: the covariance band `k` beside the
     /// diagonal blocks (the joint filter's, at most `N − 1`; 0 for the others), and `π` with
     /// the mixture update.
     pub fn columns(&self, model: &Model) -> EstimatesColumns {
         EstimatesColumns {
             n: model.dims.n,
-            cross: self.joint.map_or(0, |j| j.band.min(model.subsystems - 1)),
+            cross: self.joint_band(model).unwrap_or(0),
             arrival: self.update() == Update::Mixture,
         }
     }
@@ -317,7 +322,7 @@ impl CheckedSpec {
             filter: self.filter,
             interconnect_from: two_step.map(|o| o.interconnect_from),
             joint: self.joint.map(|j| JointSettings {
-                band: j.band.min(model.subsystems - 1),
+                band: self.joint_band(model).unwrap_or(j.band),
                 band_tol: j.band_tol,
                 loading: j.loading_for(model),
                 second_moment: j.second_moment,
