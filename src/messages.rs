@@ -69,6 +69,14 @@ pub fn report(kind: &str, msg: impl Display) {
     let _ = writeln!(std::io::stderr(), "{kind}: {}", one_line(msg));
 }
 
+/// Prints `{kind}: {msg}` unless `--quiet`: a figure the command gives on its own (the
+/// innovation check of `estimate`, docs/theory.md §14).
+pub fn finding(kind: &str, msg: impl Display) {
+    if verbosity() >= Verbosity::Normal {
+        let _ = writeln!(std::io::stderr(), "{kind}: {}", one_line(msg));
+    }
+}
+
 /// Prints `info: {msg}` with `--verbose` only (progress, timings, files written).
 pub fn info(msg: impl Display) {
     if verbosity() >= Verbosity::Verbose {

@@ -15,8 +15,11 @@ use sisfilt::filter::{
     ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment, TwoStepFilter, TwoStepOptions,
     Update,
 };
+use sisfilt::innovations::InnovationCheck;
 use sisfilt::interconnect::SolverKind;
-use sisfilt::io::estimates::{BackgroundWriter, EstimatesColumns, EstimatesWriter, Format};
+use sisfilt::io::estimates::{
+    BackgroundWriter, EstimatesColumns, EstimatesWriter, Format, RowValues,
+};
 use sisfilt::io::{StepLayout, StepReader};
 use sisfilt::model::Model;
 
@@ -271,6 +274,40 @@ fn steps_after_the_first_allocate_nothing() {
         assert_eq!(count, 0, "mixture pseudo-measurement: {count} allocations");
     }
 
+    // The innovation check (docs/theory.md §14) of each update and dropout mode, as every run
+    // makes it before each step, over a block boundary (t = 25).
+    for (dropouts, update) in [
+        (Dropouts::Unknown, Update::Linear),
+        (Dropouts::Unknown, Update::Mixture),
+        (Dropouts::Known, Update::Linear),
+    ] {
+        let model = &varying;
+        let (big_n, n) = (model.subsystems, model.dims.n);
+        let mut check = InnovationCheck::new(model, dropouts, update, false);
+        let mut y: Vec<f64> = (0..big_n).map(|k| (k as f64 * 0.3).sin()).collect();
+        if dropouts == Dropouts::Known {
+            y.iter_mut().step_by(3).for_each(|v| *v = f64::NAN);
+        }
+        let u: Vec<f64> = (0..big_n).map(|k| (k as f64 * 0.7).cos()).collect();
+        let mean: Vec<f64> = (0..big_n * n).map(|k| (k as f64 * 0.2).cos()).collect();
+        let cov: Vec<f64> = (0..big_n).flat_map(|_| [0.5, 0.1, 0.1, 0.4]).collect();
+        let mut t = 0;
+        for _ in 0..22 {
+            t += 1;
+            check.step(t, &mean, &cov, &y, &u).unwrap();
+        }
+        let count = allocations_in(|| {
+            for _ in 0..2 {
+                t += 1;
+                check.step(t, &mean, &cov, &y, &u).unwrap();
+            }
+        });
+        assert_eq!(
+            count, 0,
+            "innovation check {dropouts:?} {update:?}: {count} allocations"
+        );
+    }
+
     // The streaming reader and the estimates writer, one and two threads.
     let (big_n, steps) = (5000, 6);
     let mut csv = String::from("t,i,y1\n");
@@ -300,14 +337,18 @@ fn steps_after_the_first_allocate_nothing() {
                 }
             });
             assert_eq!(count, 0, "reader, {threads} threads: {count} allocations");
-            // With the arrival column of the mixture update.
+            // With the arrival column of the mixture update and the NIS column.
             let columns = EstimatesColumns {
                 n: 2,
                 cross: 0,
                 arrival: true,
+                nis: true,
             };
             let pi: Vec<f64> = (0..big_n).map(|i| 1.0 / (1.0 + i as f64)).collect();
-            let pi = Some(pi.as_slice());
+            let pi = RowValues {
+                arrival: Some(pi.as_slice()),
+                nis: Some(pi.as_slice()),
+            };
             for format in [Format::Csv, Format::Json] {
                 let mut writer =
                     EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();

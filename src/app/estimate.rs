@@ -13,6 +13,7 @@ use sisfilt::inputs::{InputStream, open_csv};
 use sisfilt::interconnect::{SolverKind, TRANSFER_ERROR_WARNING};
 use sisfilt::io::estimates::{
     BackgroundWriter, EstimateKind, EstimatesMetadata, EstimatesSummary, EstimatesWriter, Format,
+    RowValues,
 };
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
@@ -99,6 +100,11 @@ pub struct EstimateArgs {
     /// [default: 1e-9 when every Q is zero, else 0].
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
+    /// Add the column `nis` (last): the normalised innovation squared of each measurement
+    /// under the model, empty where nothing was received (docs/theory.md §14). The summary of
+    /// the innovation check is printed on standard error (and kept in JSON) whatever.
+    #[arg(long)]
+    pub nis: bool,
     /// Print on standard error the wall-clock time spent reading the input files, filtering
     /// and handing the estimates to the writer thread, and the time that thread spent
     /// formatting and writing them (a `timings:` line).
@@ -128,6 +134,7 @@ impl EstimateArgs {
             predicted: self.predicted,
             max_lifted: self.max_lifted,
             max_memory: self.max_memory,
+            nis_column: self.nis,
         };
         Ok(spec.check().map_err(in_flag_words)?)
     }
@@ -261,7 +268,6 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
             ));
         }
     }
-    report_summary(&report.summary);
     let mut timings = report.timings;
     let WriterSink { writer, out_name } = sink;
     let busy = timings.write(|| -> Result<f64> {
@@ -269,6 +275,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         writer.commit(&report.summary)?;
         Ok(busy)
     })?;
+    report_summary(&report.summary);
     if args.timings && !smoothed {
         eprintln!(
             "timings: {}; the writer thread was busy {:.3} s",
@@ -289,7 +296,16 @@ struct WriterSink {
 impl EstimateSink for WriterSink {
     fn step(&mut self, step: &StepEstimates<'_>) -> sisfilt::Result<()> {
         self.writer
-            .write_step(step.t, step.x, step.p, step.band, step.arrival)
+            .write_step(
+                step.t,
+                step.x,
+                step.p,
+                step.band,
+                RowValues {
+                    arrival: step.arrival,
+                    nis: Some(step.nis),
+                },
+            )
             .map_err(|e| Error::io(&self.out_name, e))
     }
 
@@ -325,14 +341,21 @@ fn timings_summary(timings: &Timings, total: std::time::Duration, rows: usize) -
     )
 }
 
-/// Prints the figures of a run scored against the truth on standard error: the accuracy,
-/// with the NEES warning of docs/theory.md §11, and the detection of lost measurements.
+/// Prints the figures of a run on standard error: scored against the truth, the accuracy
+/// (with the NEES warning of docs/theory.md §11) and the detection of lost measurements;
+/// always, the innovation check with its verdict (docs/theory.md §14).
 fn report_summary(summary: &EstimatesSummary) {
     if let Some(r) = &summary.accuracy {
         report_accuracy(r);
     }
     if let Some(d) = &summary.detection {
         sisfilt::messages::report("detection", d.summary());
+    }
+    if let Some(r) = &summary.innovations {
+        sisfilt::messages::finding("innovations", r.summary());
+        for line in r.warnings() {
+            warn(line);
+        }
     }
 }
 

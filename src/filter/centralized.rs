@@ -60,6 +60,9 @@ impl CentralizedFilter {
         let init = LiftedMoments::initial(model);
         let x_pred = init.mean.as_slice().to_vec();
         let t_pred = init.cov.as_slice().to_vec();
+        // Before the first step, predicted() is the prior of step 1.
+        let mut block_pred = vec![0.0; big_n * n * n];
+        Self::diagonal_blocks(&t_pred, size, n, &mut block_pred);
         Ok(Self {
             model: model.clone(),
             known,
@@ -73,8 +76,8 @@ impl CentralizedFilter {
             ws: Workspace::new(size, big_n * d.q),
             s_ii: DMatrix::zeros(n, n),
             js: DMatrix::zeros(d.q, n),
-            block_filt: vec![0.0; big_n * n * n],
-            block_pred: vec![0.0; big_n * n * n],
+            block_filt: block_pred.clone(),
+            block_pred,
             mixture: None,
             log_likelihood: None,
         })

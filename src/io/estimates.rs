@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::accuracy::{AccuracyReport, DetectionReport};
 use crate::error::{Error, Result};
+use crate::innovations::InnovationReport;
 use crate::linalg::band::SymBand;
 use rayon::prelude::*;
 
@@ -160,6 +161,9 @@ pub struct EstimatesSummary {
     /// none, and for the smoothers.
     #[serde(default)]
     pub loglik: Option<f64>,
+    /// Whether the measurements fit the model (docs/theory.md §14).
+    #[serde(default)]
+    pub innovations: Option<InnovationReport>,
 }
 
 /// A whole estimates JSON file: the metadata, the columns, the rows (`null` for a missing
@@ -201,20 +205,25 @@ pub fn cross_covariance_header(n: usize, k: usize) -> Vec<String> {
 }
 
 /// The column of `π(t, i)`, the posterior probability that the measurement arrived (the
-/// mixture update, docs/theory.md §10): the last of a row.
+/// mixture update, docs/theory.md §10).
 pub const ARRIVAL_COLUMN: &str = "arrival";
+/// The column of the normalised innovation squared of `y(t, i)` (docs/theory.md §14): the
+/// last of a row, when asked for.
+pub const NIS_COLUMN: &str = "nis";
 
 /// The columns of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n`, then in JSON the
 /// cross-covariance blocks `C{d}_{r}_{c}` of `d = 1..cross`, then `arrival` when the filter
-/// reports it (docs/theory.md §13).
+/// reports it, then `nis` when asked for (docs/theory.md §13).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EstimatesColumns {
     /// State dimension.
     pub n: usize,
     /// Cross-covariance blocks per row.
     pub cross: usize,
-    /// The last column is `arrival`.
+    /// The column `arrival` follows the covariances.
     pub arrival: bool,
+    /// The last column is `nis`.
+    pub nis: bool,
 }
 
 impl EstimatesColumns {
@@ -222,20 +231,33 @@ impl EstimatesColumns {
     pub fn header(&self) -> Vec<String> {
         let mut h = estimates_header(self.n);
         h.extend(cross_covariance_header(self.n, self.cross));
-        if self.arrival {
-            h.push(ARRIVAL_COLUMN.to_string());
+        for (name, present) in [(ARRIVAL_COLUMN, self.arrival), (NIS_COLUMN, self.nis)] {
+            if present {
+                h.push(name.to_string());
+            }
         }
         h
     }
 
     /// The columns whose names are `header`, if they are those of an estimates file.
     pub fn parse(header: &[String]) -> Option<Self> {
-        let arrival = header.last().is_some_and(|c| c == ARRIVAL_COLUMN);
-        let width = header.len() - usize::from(arrival);
+        let mut width = header.len();
+        let mut last_is = |name: &str| {
+            let found = width > 0 && header[width - 1] == name;
+            width -= usize::from(found);
+            found
+        };
+        let nis = last_is(NIS_COLUMN);
+        let arrival = last_is(ARRIVAL_COLUMN);
         (1..=width).find_map(|n| {
             let own = 2 + n + n * (n + 1) / 2;
             let cross = width.checked_sub(own)? / (n * n);
-            let columns = Self { n, cross, arrival };
+            let columns = Self {
+                n,
+                cross,
+                arrival,
+                nis,
+            };
             (columns.header() == header).then_some(columns)
         })
     }
@@ -243,8 +265,17 @@ impl EstimatesColumns {
     /// Values per row after `t` and `i`.
     pub fn values(&self) -> usize {
         let n = self.n;
-        n + n * (n + 1) / 2 + self.cross * n * n + usize::from(self.arrival)
+        n + n * (n + 1) / 2 + self.cross * n * n + usize::from(self.arrival) + usize::from(self.nis)
     }
+}
+
+/// The values of a step's rows after the covariances, one per row (`N` values each): `π`
+/// for the `arrival` column and the NIS for the `nis` column; a value missing where its
+/// column is written is an empty cell (CSV) or `null` (JSON).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RowValues<'a> {
+    pub arrival: Option<&'a [f64]>,
+    pub nis: Option<&'a [f64]>,
 }
 
 /// Rows formatted per batch: bounds the writer's memory whatever `N`.
@@ -316,19 +347,20 @@ impl<W: Write> EstimatesWriter<W> {
     }
 
     /// Writes the rows `(t, 1..N)` from `x̂` (`N·n`), `P` (`N` blocks `n × n`, column-major),
-    /// the covariance band (for the cross-covariance columns; `null` without it) and `π`
-    /// (`N` values, for the `arrival` column).
+    /// the covariance band (for the cross-covariance columns; `null` without it) and the
+    /// values of the `arrival` and `nis` columns.
     pub fn write_step(
         &mut self,
         t: usize,
         x: &[f64],
         p: &[f64],
         band: Option<&SymBand>,
-        arrival: Option<&[f64]>,
+        values: RowValues<'_>,
     ) -> std::io::Result<()> {
         let EstimatesColumns { n, cross, .. } = self.columns;
         let rows = x.len() / n;
-        let arrival = self.columns.arrival.then_some(arrival);
+        let arrival = self.columns.arrival.then_some(values.arrival);
+        let nis = self.columns.nis.then_some(values.nis);
         let threads = rayon::current_num_threads();
         let parallel = rows >= PARALLEL_MIN_ROWS && threads > 1;
         let (format, first) = (self.format, self.first);
@@ -363,14 +395,16 @@ impl<W: Write> EstimatesWriter<W> {
                         let b = band.filter(|_| i + d < rows).map(|b| b.block(i, d));
                         (0..n * n).map(move |e| b.map_or(f64::NAN, |b| b[(e % n) * n + e / n]))
                     });
-                    // A missing π is written as an empty cell (CSV) or `null` (JSON).
+                    // A missing value is written as an empty cell (CSV) or `null` (JSON).
                     let pi = arrival.map(|a| a.map_or(f64::NAN, |a| a[i]));
+                    let nis = nis.map(|a| a.map_or(f64::NAN, |a| a[i]));
                     let row = x[i * n..(i + 1) * n]
                         .iter()
                         .copied()
                         .chain(upper)
                         .chain(blocks)
-                        .chain(pi);
+                        .chain(pi)
+                        .chain(nis);
                     match format {
                         Format::Csv => fmt.csv_row(buf, t, i + 1, row),
                         Format::Json => fmt.json_row(buf, first && i == 0, t, i + 1, row),
@@ -428,8 +462,9 @@ struct StepBatch {
     /// One covariance band per step, for a writer with cross-covariance columns.
     bands: Vec<SymBand>,
     /// `π` of `count` steps (NaN for a step without), for a writer with the `arrival`
-    /// column.
+    /// column; the NIS the same, for a writer with the `nis` column.
     arrival: Vec<f64>,
+    nis: Vec<f64>,
 }
 
 /// Rows handed to the writer thread at a time, at least (short chains batch several steps, so
@@ -477,6 +512,7 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
                     Vec::new()
                 },
                 arrival: vec![0.0; if columns.arrival { per_batch * rows } else { 0 }],
+                nis: vec![0.0; if columns.nis { per_batch * rows } else { 0 }],
             };
             to_caller.send(batch).expect("the channel has room");
         }
@@ -493,7 +529,10 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
                             &batch.x[k * step_x..(k + 1) * step_x],
                             &batch.p[k * step_p..(k + 1) * step_p],
                             batch.bands.get(k),
-                            batch.arrival.get(k * rows..(k + 1) * rows),
+                            RowValues {
+                                arrival: batch.arrival.get(k * rows..(k + 1) * rows),
+                                nis: batch.nis.get(k * rows..(k + 1) * rows),
+                            },
                         )?;
                     }
                     busy_thread.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -525,7 +564,7 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         x: &[f64],
         p: &[f64],
         band: Option<&SymBand>,
-        arrival: Option<&[f64]>,
+        values: RowValues<'_>,
     ) -> std::io::Result<()> {
         let mut batch = match self.current.take() {
             Some(batch) => batch,
@@ -544,10 +583,15 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         if let (Some(dst), Some(src)) = (batch.bands.get_mut(k), band) {
             dst.copy_band_from(src);
         }
-        if let Some(dst) = batch.arrival.get_mut(k * self.rows..(k + 1) * self.rows) {
-            match arrival {
-                Some(src) => dst.copy_from_slice(src),
-                None => dst.fill(f64::NAN),
+        let rows = k * self.rows..(k + 1) * self.rows;
+        for (dst, src) in [
+            (batch.arrival.get_mut(rows.clone()), values.arrival),
+            (batch.nis.get_mut(rows), values.nis),
+        ] {
+            match (dst, src) {
+                (Some(dst), Some(src)) => dst.copy_from_slice(src),
+                (Some(dst), None) => dst.fill(f64::NAN),
+                (None, _) => {}
             }
         }
         batch.count += 1;
@@ -559,10 +603,14 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
     }
 
     fn send(&mut self, batch: StepBatch) -> std::io::Result<()> {
-        let sent = self.to_writer.as_ref().map(|w| w.send(batch));
-        match sent {
-            Some(Ok(())) => Ok(()),
-            _ => Err(self.thread_error()),
+        let sent = self
+            .to_writer
+            .as_ref()
+            .is_some_and(|w| w.send(batch).is_ok());
+        if sent {
+            Ok(())
+        } else {
+            Err(self.thread_error())
         }
     }
 
@@ -614,20 +662,23 @@ mod tests {
             n,
             cross: 0,
             arrival: false,
+            nis: false,
         }
     }
 
     /// The writer thread, batching steps of short chains, writes the same bytes as the writer
-    /// called directly, the `arrival` column included.
+    /// called directly, the `arrival` and `nis` columns included.
     #[test]
     fn background_writer_equals_direct_writer() {
         for (n, rows, steps) in [(2, 3, 2000), (1, 5000, 3), (3, 700, 20)] {
             let x: Vec<f64> = (0..rows * n).map(|k| (k as f64 * 0.3).cos()).collect();
             let p: Vec<f64> = (0..rows * n * n).map(|k| k as f64 / 9.0).collect();
             let pi: Vec<f64> = (0..rows).map(|k| 1.0 / (1.0 + k as f64)).collect();
-            for arrival in [false, true] {
+            let nis_values: Vec<f64> = (0..rows).map(|k| 2.0 + k as f64).collect();
+            for (arrival, nis) in [(false, false), (true, false), (false, true), (true, true)] {
                 let columns = EstimatesColumns {
                     arrival,
+                    nis,
                     ..columns(n)
                 };
                 let new = || EstimatesWriter::new(Vec::new(), Format::Csv, columns, None).unwrap();
@@ -635,9 +686,12 @@ mod tests {
                 let mut background = BackgroundWriter::new(new(), rows);
                 for t in 1..=steps {
                     // Every third step comes without π: an empty cell.
-                    let pi = (t % 3 != 0).then_some(pi.as_slice());
-                    direct.write_step(t, &x, &p, None, pi).unwrap();
-                    background.write_step(t, &x, &p, None, pi).unwrap();
+                    let values = RowValues {
+                        arrival: (t % 3 != 0).then_some(pi.as_slice()),
+                        nis: Some(&nis_values),
+                    };
+                    direct.write_step(t, &x, &p, None, values).unwrap();
+                    background.write_step(t, &x, &p, None, values).unwrap();
                 }
                 let (writer, _) = background.finish().unwrap();
                 let summary = EstimatesSummary::default();
@@ -645,11 +699,22 @@ mod tests {
                 assert!(bytes == direct.finish(&summary).unwrap());
                 let text = String::from_utf8(bytes).unwrap();
                 let header = text.lines().next().unwrap();
-                assert_eq!(header.ends_with(",arrival"), arrival);
-                if arrival {
+                assert_eq!(header.ends_with(",arrival"), arrival && !nis);
+                assert_eq!(header.ends_with(",nis"), nis);
+                let row = |k: usize| text.lines().nth(k).unwrap();
+                match (arrival, nis) {
                     // Row (t = 1, i = 2) ends in π = 1/2; row (t = 3, i = 1) in an empty cell.
-                    assert!(text.lines().nth(2).unwrap().ends_with(",0.5"));
-                    assert!(text.lines().nth(2 * rows + 1).unwrap().ends_with(','));
+                    (true, false) => {
+                        assert!(row(2).ends_with(",0.5"));
+                        assert!(row(2 * rows + 1).ends_with(','));
+                    }
+                    // …and then the NIS, 3 for i = 2 and 2 for i = 1.
+                    (true, true) => {
+                        assert!(row(2).ends_with(",0.5,3.0"));
+                        assert!(row(2 * rows + 1).ends_with(",,2.0"));
+                    }
+                    (false, true) => assert!(row(2).ends_with(",3.0")),
+                    (false, false) => {}
                 }
             }
         }
@@ -660,8 +725,13 @@ mod tests {
     fn columns_parse_their_header() {
         for n in 1..=4 {
             for cross in 0..=3 {
-                for arrival in [false, true] {
-                    let columns = EstimatesColumns { n, cross, arrival };
+                for (arrival, nis) in [(false, false), (true, false), (false, true), (true, true)] {
+                    let columns = EstimatesColumns {
+                        n,
+                        cross,
+                        arrival,
+                        nis,
+                    };
                     let header = columns.header();
                     assert_eq!(EstimatesColumns::parse(&header), Some(columns));
                     assert_eq!(header.len(), 2 + columns.values());
@@ -669,14 +739,18 @@ mod tests {
                     renamed[2] = "y1".into();
                     assert_eq!(EstimatesColumns::parse(&renamed), None);
                     // Without its last column, a header is another one only when that
-                    // column was `arrival`, or a whole 1 × 1 cross-covariance block.
+                    // column was `nis` or `arrival`, or a whole 1 × 1 cross-covariance block.
                     let without_last = EstimatesColumns::parse(&header[..header.len() - 1]);
-                    let expected = match (arrival, n, cross) {
-                        (true, _, _) => Some(EstimatesColumns {
+                    let expected = match (nis, arrival, n, cross) {
+                        (true, _, _, _) => Some(EstimatesColumns {
+                            nis: false,
+                            ..columns
+                        }),
+                        (false, true, _, _) => Some(EstimatesColumns {
                             arrival: false,
                             ..columns
                         }),
-                        (false, 1, 1..) => Some(EstimatesColumns {
+                        (false, false, 1, 1..) => Some(EstimatesColumns {
                             cross: cross - 1,
                             ..columns
                         }),
@@ -722,8 +796,8 @@ mod tests {
                     .unwrap();
                 let bytes = pool.install(|| {
                     let mut w = EstimatesWriter::new(Vec::new(), format, columns(n), None).unwrap();
-                    w.write_step(1, &x, &p, None, None).unwrap();
-                    w.write_step(2, &x, &p, None, None).unwrap();
+                    w.write_step(1, &x, &p, None, RowValues::default()).unwrap();
+                    w.write_step(2, &x, &p, None, RowValues::default()).unwrap();
                     w.finish(&EstimatesSummary::default()).unwrap()
                 });
                 let header = match format {
@@ -736,7 +810,7 @@ mod tests {
                 want.extend_from_slice(&expected);
                 if format == Format::Json {
                     want.extend_from_slice(
-                        b"],\"accuracy\":null,\"detection\":null,\"loglik\":null}\n",
+                        b"],\"accuracy\":null,\"detection\":null,\"loglik\":null,\"innovations\":null}\n",
                     );
                 }
                 assert!(bytes == want, "{format:?} with {threads} threads");

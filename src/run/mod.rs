@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 
 use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
+use crate::innovations::InnovationCheck;
 use crate::interconnect::TRANSFER_ERROR_WARNING;
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
 use crate::lifted::spectral_radius;
@@ -91,7 +92,8 @@ impl std::fmt::Display for Note {
 
 /// One step's estimates, as a run hands them to its [`EstimateSink`]: `x̂` (`N·n`), the
 /// diagonal blocks of `P` (`N·n²`, column-major blocks), the covariance band when the filter
-/// keeps one (the joint filter) and `π(t, ·)` with the mixture update.
+/// keeps one (the joint filter), `π(t, ·)` with the mixture update, and the NIS of each
+/// subsystem's measurement (`N` values, NaN where none was received; docs/theory.md §14).
 #[derive(Clone, Copy)]
 pub struct StepEstimates<'a> {
     pub t: usize,
@@ -99,6 +101,7 @@ pub struct StepEstimates<'a> {
     pub p: &'a [f64],
     pub band: Option<&'a SymBand>,
     pub arrival: Option<&'a [f64]>,
+    pub nis: &'a [f64],
 }
 
 /// Where a run's estimates go, step after step, and what the user should know.
@@ -146,7 +149,8 @@ pub struct RunReport {
     /// The steps run, `1..=steps`.
     pub steps: usize,
     /// Accuracy and detection against the truth, when one was given; the log-likelihood of
-    /// the measurements, when the filter has one.
+    /// the measurements, when the filter has one; whether the measurements fit the model
+    /// (docs/theory.md §14).
     pub summary: EstimatesSummary,
     pub timings: Timings,
 }
@@ -174,7 +178,17 @@ pub fn stream(
     }
     let filter = spec.build_filter(model)?;
     let predicted = spec.output() == EstimateKind::Predicted;
-    run_filter(model, filter, predicted, source, truth, sink)
+    run_filter(model, spec, filter, predicted, source, truth, sink)
+}
+
+/// The innovation check of a run of `spec` (docs/theory.md §14).
+fn innovation_check(model: &Model, spec: &CheckedSpec) -> InnovationCheck {
+    InnovationCheck::new(
+        model,
+        spec.dropouts(),
+        spec.update(),
+        spec.filter_kind() == FilterKind::Distributed,
+    )
 }
 
 /// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
@@ -203,6 +217,7 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
 /// The filtered (or predicted) run: each step is read, filtered, handed on and scored.
 fn run_filter(
     model: &Model,
+    spec: &CheckedSpec,
     mut filter: Box<dyn ChainFilter>,
     predicted: bool,
     source: &mut dyn StepSource,
@@ -220,8 +235,13 @@ fn run_filter(
     let mut warned_transfer = false;
     let mut steps = 0;
     let mut timings = Timings::default();
+    let mut check = innovation_check(model, spec);
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
-        timings.filter(|| filter.step(&y, &u))?;
+        timings.filter(|| {
+            let (mean, cov) = filter.predicted();
+            check.step(t, mean, cov, &y, &u)?;
+            filter.step(&y, &u)
+        })?;
         loglik += filter.log_likelihood().unwrap_or(0.0);
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
@@ -242,6 +262,7 @@ fn run_filter(
             p,
             band: filter.covariance_band(predicted).map(|(b, _)| b),
             arrival: filter.arrival(),
+            nis: check.nis(),
         };
         timings.write(|| sink.step(&step))?;
         if let Some(truth) = truth.as_deref_mut() {
@@ -263,6 +284,7 @@ fn run_filter(
     timings.read(|| source.finish(steps))?;
     let summary = EstimatesSummary {
         loglik: filter.log_likelihood().map(|_| loglik),
+        innovations: Some(check.report()),
         ..scores.summary(truth.is_some(), filter.arrival().is_some())?
     };
     Ok(RunReport {
@@ -287,8 +309,10 @@ fn run_smoother(
     let mut y = vec![0.0; big_n * model.dims.q];
     let mut u = vec![0.0; big_n * model.dims.m];
     let mut truth_rows: Vec<Vec<f64>> = Vec::new();
-    // The forward pass's π of every step (the mixture update): the smoother keeps them.
+    // The forward pass's π of every step (the mixture update) and its NIS: kept for the rows.
     let mut arrival: Vec<Vec<f64>> = Vec::new();
+    let mut nis: Vec<f64> = Vec::new();
+    let mut check = innovation_check(model, spec);
     let mut steps = 0;
     let mut timings = Timings::default();
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
@@ -296,7 +320,12 @@ fn run_smoother(
         if need > limit {
             return Err(RunError::OverMaxMemory { t, need, limit }.into());
         }
-        timings.filter(|| smoother.step(&y, &u))?;
+        timings.filter(|| {
+            let (mean, cov) = smoother.prior();
+            check.step(t, mean, cov, &y, &u)?;
+            smoother.step(&y, &u)
+        })?;
+        nis.extend_from_slice(check.nis());
         if let Some(pi) = smoother.arrival() {
             arrival.push(pi.to_vec());
         }
@@ -321,6 +350,7 @@ fn run_smoother(
             p,
             band: smoothed.bands.as_ref().map(|b| &b[idx]),
             arrival: arrival.get(idx).map(Vec::as_slice),
+            nis: &nis[idx * big_n..(idx + 1) * big_n],
         };
         timings.write(|| sink.step(&step))?;
         if let Some(row) = truth_rows.get(idx) {
@@ -329,7 +359,10 @@ fn run_smoother(
     }
     Ok(RunReport {
         steps,
-        summary: scores.summary(truth.is_some(), !arrival.is_empty())?,
+        summary: EstimatesSummary {
+            innovations: Some(check.report()),
+            ..scores.summary(truth.is_some(), !arrival.is_empty())?
+        },
         timings,
     })
 }
@@ -344,6 +377,8 @@ pub struct Estimates {
     pub p: Vec<f64>,
     /// `T × N` values of `π(t, i)`, with the mixture update.
     pub arrival: Option<Vec<f64>>,
+    /// `T × N` values of the NIS (NaN where nothing was received; docs/theory.md §14).
+    pub nis: Vec<f64>,
     /// The steps, the log-likelihood, accuracy and detection against the truth.
     pub report: RunReport,
     /// What the user should know (the notes of [`stream`]).
@@ -356,6 +391,7 @@ struct Collect {
     x: Vec<f64>,
     p: Vec<f64>,
     arrival: Option<Vec<f64>>,
+    nis: Vec<f64>,
     notes: Vec<Note>,
 }
 
@@ -363,6 +399,7 @@ impl EstimateSink for Collect {
     fn step(&mut self, step: &StepEstimates<'_>) -> Result<()> {
         self.x.extend_from_slice(step.x);
         self.p.extend_from_slice(step.p);
+        self.nis.extend_from_slice(step.nis);
         if let Some(pi) = step.arrival {
             self.arrival
                 .get_or_insert_with(Vec::new)
@@ -464,6 +501,7 @@ pub fn estimate(
         x: sink.x,
         p: sink.p,
         arrival: sink.arrival,
+        nis: sink.nis,
         report,
         notes: sink.notes,
     })

@@ -59,6 +59,7 @@ impl Scores {
             accuracy: Some(accuracy),
             detection: arrival.then(|| self.detection.report()),
             loglik: None,
+            innovations: None,
         })
     }
 }

@@ -116,6 +116,9 @@ pub struct RunSpec {
     pub max_lifted: usize,
     /// Largest memory (bytes) the smoother's stored forward pass may take.
     pub max_memory: Option<u64>,
+    /// The estimates gain the column `nis`, the normalised innovation squared of every
+    /// `(t, i)` (docs/theory.md §14; the innovation check itself runs whatever).
+    pub nis_column: bool,
 }
 
 impl Default for RunSpec {
@@ -136,6 +139,7 @@ impl Default for RunSpec {
             predicted: false,
             max_lifted: DEFAULT_MAX_LIFTED,
             max_memory: None,
+            nis_column: false,
         }
     }
 }
@@ -170,6 +174,7 @@ impl RunSpec {
             output,
             max_lifted: self.max_lifted,
             max_memory: self.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
+            nis_column: self.nis_column,
         })
     }
 
@@ -223,6 +228,7 @@ pub struct CheckedSpec {
     output: EstimateKind,
     max_lifted: usize,
     max_memory: u64,
+    nis_column: bool,
 }
 
 impl CheckedSpec {
@@ -275,6 +281,7 @@ impl CheckedSpec {
             n: model.dims.n,
             cross: self.joint_band(model).unwrap_or(0),
             arrival: self.update() == Update::Mixture,
+            nis: self.nis_column,
         }
     }
 

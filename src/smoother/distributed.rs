@@ -117,6 +117,10 @@ impl Smoother for DistributedSmoother {
         self.filter.arrival()
     }
 
+    fn prior(&self) -> (&[f64], &[f64]) {
+        self.filter.predicted()
+    }
+
     fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);

@@ -119,6 +119,10 @@ impl Smoother for JointSmoother {
         self.filter.arrival()
     }
 
+    fn prior(&self) -> (&[f64], &[f64]) {
+        self.filter.predicted()
+    }
+
     /// The backward pass; if it fails with the default loading, the whole smoother again
     /// with the loadings 1e−7, 1e−6 and 1e−5 until one succeeds, and a note says which.
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {

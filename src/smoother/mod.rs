@@ -84,6 +84,9 @@ pub trait Smoother: Send {
     fn arrival(&self) -> Option<&[f64]> {
         None
     }
+    /// The prior of the next forward step: `x̂(t+1|t)` and the diagonal blocks of `T(t+1)`
+    /// (before the first step, those of step 1), as [`crate::filter::ChainFilter::predicted`] gives them.
+    fn prior(&self) -> (&[f64], &[f64]);
 }
 
 /// The gain `L_t` of one backward step, which maps what the later data say about `x(t+1)` to

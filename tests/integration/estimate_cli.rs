@@ -465,7 +465,9 @@ fn round_trip_on_every_shipped_config() {
         assert!(
             lines
                 .iter()
-                .all(|l| l.starts_with("warning: ") || l.starts_with("accuracy: ")),
+                .all(|l| ["warning: ", "accuracy: ", "innovations: "]
+                    .iter()
+                    .any(|kind| l.starts_with(kind))),
             "{name}: unexpected stderr {lines:?}"
         );
         let accuracy: Vec<&String> = lines
@@ -636,7 +638,14 @@ fn json_output_carries_the_csv_numbers_and_metadata() {
         assert_eq!(typed.metadata.n, n);
         assert_eq!(typed.metadata.config.sha256, config_sha);
         let mut metadata = v.as_object().unwrap().clone();
-        for key in ["columns", "estimates", "accuracy", "detection", "loglik"] {
+        for key in [
+            "columns",
+            "estimates",
+            "accuracy",
+            "detection",
+            "loglik",
+            "innovations",
+        ] {
             metadata.remove(key);
         }
         assert_eq!(

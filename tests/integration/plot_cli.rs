@@ -908,7 +908,9 @@ fn quiet_drops_warnings_and_verbose_adds_info_lines() {
     assert!(
         normal
             .lines()
-            .all(|l| l.starts_with("warning: ") || l.starts_with("accuracy: ")),
+            .all(|l| ["warning: ", "accuracy: ", "innovations: "]
+                .iter()
+                .any(|kind| l.starts_with(kind))),
         "{normal}"
     );
     assert_eq!(run(Some("--quiet")), "");
@@ -925,7 +927,9 @@ fn quiet_drops_warnings_and_verbose_adds_info_lines() {
     assert!(
         verbose
             .lines()
-            .all(|l| l.starts_with("warning: ") || l.starts_with("info: ")),
+            .all(|l| ["warning: ", "info: ", "innovations: "]
+                .iter()
+                .any(|kind| l.starts_with(kind))),
         "{verbose}"
     );
     // The flags are global: after the command too. Both together are a usage error.
