@@ -38,7 +38,7 @@ fn workload(subsystems: usize, steps: usize) -> Model {
 fn data(model: &Model) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
     let (mut ys, mut us) = (Vec::new(), Vec::new());
     let mut inputs = InputStream::open(model, None).unwrap();
-    simulate(model, model.steps, 1, &mut inputs, |s| {
+    simulate(model, model.horizon().unwrap(), 1, &mut inputs, |s| {
         ys.push(s.y.to_vec());
         us.push(s.u.to_vec());
         Ok(())

@@ -21,18 +21,21 @@ const POWER_STEPS: usize = 4000;
 #[derive(Debug, Clone, Serialize)]
 pub struct ModelCheck {
     pub subsystems: usize,
-    pub steps: usize,
+    /// The config's `steps`, when it gives them.
+    pub steps: Option<usize>,
     pub dims: Dims,
     /// The parameters (`A` … `Q`, then `p`) that vary, in that order.
     pub varying: Vec<Variation>,
     /// Every `Q` is zero (the paper's setting).
     pub q_is_zero: bool,
-    /// One per window of parameters that starts by `T`, in time order.
+    /// One per window of parameters that starts by `T` (every one without `steps`), in time
+    /// order.
     pub windows: Vec<WindowCheck>,
     /// The joint filter's default band `k` (at most `N − 1`), which the costs below assume.
     pub joint_band: usize,
-    /// Bytes each smoother's stored forward pass takes for the `T` steps of the model.
-    pub smoother_memory: SmootherMemory,
+    /// Bytes each smoother's stored forward pass takes for the `T` steps of the model (when
+    /// the config gives `steps`).
+    pub smoother_memory: Option<SmootherMemory>,
 }
 
 /// A parameter that varies, and how.
@@ -48,7 +51,9 @@ pub struct Variation {
 #[derive(Debug, Clone, Serialize)]
 pub struct WindowCheck {
     pub first: usize,
-    pub last: usize,
+    /// The last step of the window: `None` for the last window of a config without `steps`,
+    /// which has no end.
+    pub last: Option<usize>,
     /// The interconnection system's condition estimate (1-norm).
     pub condition: f64,
     /// The spectral radius of `A_eff`: exact, or a power-iteration estimate.
@@ -93,13 +98,16 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
     let joint_band = DEFAULT_BAND.min(model.subsystems - 1);
     let all = model.windows();
     let mut windows = Vec::new();
+    let horizon = model.steps.unwrap_or(usize::MAX);
     for (k, w) in all.iter().enumerate() {
-        if w.first > model.steps {
+        if w.first > horizon {
             break;
         }
         let last = all
             .get(k + 1)
-            .map_or(model.steps, |next| (next.first - 1).min(model.steps));
+            .map(|next| next.first - 1)
+            .or(model.steps)
+            .map(|last| last.min(horizon));
         let solver = ChainSolver::new(model, w.first)?;
         let b = a_eff_band(model, w.first, &solver, DEFAULT_BAND_TOL).half_width();
         windows.push(WindowCheck {
@@ -118,7 +126,11 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
             ),
         });
     }
-    let memory = |kind| memory_bytes(model, kind, model.steps);
+    let memory = |steps| SmootherMemory {
+        distributed: memory_bytes(model, SmootherKind::Distributed, steps),
+        joint: memory_bytes(model, SmootherKind::Joint(joint_band), steps),
+        centralized: memory_bytes(model, SmootherKind::Centralized, steps),
+    };
     Ok(ModelCheck {
         subsystems: model.subsystems,
         steps: model.steps,
@@ -127,11 +139,7 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
         q_is_zero: model.q_is_zero(),
         windows,
         joint_band,
-        smoother_memory: SmootherMemory {
-            distributed: memory(SmootherKind::Distributed),
-            joint: memory(SmootherKind::Joint(joint_band)),
-            centralized: memory(SmootherKind::Centralized),
-        },
+        smoother_memory: model.steps.map(memory),
     })
 }
 
@@ -167,7 +175,7 @@ mod tests {
         "#;
         let model = Model::from_toml_str("chain.toml", std::path::Path::new("."), text).unwrap();
         let figures = check(&model).unwrap();
-        let spans: Vec<(usize, usize, f64)> = figures
+        let spans: Vec<(usize, Option<usize>, f64)> = figures
             .windows
             .iter()
             .map(|w| (w.first, w.last, w.spectral_radius.value))
@@ -176,7 +184,7 @@ mod tests {
         for ((first, last, rho), (want_first, want_last, want_rho)) in
             spans.iter().zip([(1, 2, 0.5), (3, 4, 1.5), (5, 6, 0.5)])
         {
-            assert_eq!((*first, *last), (want_first, want_last));
+            assert_eq!((*first, *last), (want_first, Some(want_last)));
             assert!((rho - want_rho).abs() < 1e-12, "{spans:?}");
         }
         let unstable: Vec<usize> = figures.unstable_windows().map(|w| w.first).collect();

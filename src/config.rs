@@ -18,8 +18,9 @@ pub type RawMatrix = Vec<Vec<f64>>;
 pub struct RawConfig {
     /// Chain length `N`.
     pub subsystems: i64,
-    /// Horizon `T` for `simulate` and `evaluate`.
-    pub steps: i64,
+    /// Horizon `T` for `simulate` and `evaluate` (`estimate` takes it from its data).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps: Option<i64>,
     /// Default seed of the random draws.
     #[serde(default)]
     pub seed: u64,

@@ -200,6 +200,16 @@ impl InputStream {
     }
 
     /// Checks that a file held no steps beyond `steps` (docs/theory.md §13: exactly `1..T`).
+    /// Reads an inputs file to its end, checking every value (a config without `steps`
+    /// gives no length to expect).
+    pub fn read_to_end(self) -> Result<()> {
+        if let InputStream::File(mut r) = self {
+            let mut scratch = vec![0.0; r.row_values()];
+            while r.read_step(&mut scratch)?.is_some() {}
+        }
+        Ok(())
+    }
+
     pub fn finish(self, steps: usize) -> Result<()> {
         if let InputStream::File(mut r) = self {
             let mut scratch = vec![0.0; r.row_values()];

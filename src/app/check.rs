@@ -6,7 +6,7 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use sisfilt::check::{ModelCheck, check};
+use sisfilt::check::{ModelCheck, WindowCheck, check};
 use sisfilt::inputs::InputStream;
 use sisfilt::messages::warn;
 use sisfilt::model::Model;
@@ -17,20 +17,26 @@ use super::print_line;
 /// `sisfilt check CONFIG`: the report on standard output, warnings on standard error.
 pub fn run(path: &Path) -> Result<()> {
     let model = Model::load(path)?;
-    // Everything simulate reads: the inputs file too.
+    // Everything simulate reads: the inputs file too (all of it without `steps`).
     let mut inputs = InputStream::open(&model, None)?;
     let mut u = vec![0.0; model.subsystems * model.dims.m];
-    for t in 1..=model.steps {
-        inputs.next(t, &mut u)?;
+    match model.steps {
+        Some(steps) => {
+            for t in 1..=steps {
+                inputs.next(t, &mut u)?;
+            }
+            inputs.finish(steps)?;
+        }
+        None => inputs.read_to_end()?,
     }
-    inputs.finish(model.steps)?;
     let figures = check(&model)?;
     // Print only once everything passed, so that a bad config prints nothing on stdout.
     print_line(&report(path, &figures))?;
     for w in figures.unstable_windows() {
         warn(format!(
-            "t = {}..{}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
-            w.first, w.last, w.spectral_radius.value
+            "{}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
+            span(w),
+            w.spectral_radius.value
         ));
     }
     Ok(())
@@ -41,10 +47,16 @@ fn report(path: &Path, figures: &ModelCheck) -> String {
     let d = figures.dims;
     let mut report = vec![
         format!("config: {}", path.display()),
-        format!(
-            "chain: N = {} subsystems, T = {} steps",
-            figures.subsystems, figures.steps
-        ),
+        match figures.steps {
+            Some(steps) => format!(
+                "chain: N = {} subsystems, T = {steps} steps",
+                figures.subsystems
+            ),
+            None => format!(
+                "chain: N = {} subsystems, T not set (estimate takes it from its data; simulate needs steps or --steps)",
+                figures.subsystems
+            ),
+        },
         format!(
             "dimensions: n = {}, m = {}, q = {}, plus = {}, minus = {}",
             d.n, d.m, d.q, d.plus, d.minus
@@ -81,9 +93,8 @@ fn report(path: &Path, figures: &ModelCheck) -> String {
     let k = figures.joint_band;
     for w in &figures.windows {
         report.push(format!(
-            "t = {}..{}: interconnection condition estimate {:.3e} (1-norm), spectral radius of A_eff {:.6} ({})",
-            w.first,
-            w.last,
+            "{}: interconnection condition estimate {:.3e} (1-norm), spectral radius of A_eff {:.6} ({})",
+            span(w),
             w.condition,
             w.spectral_radius.value,
             if w.spectral_radius.exact {
@@ -93,22 +104,29 @@ fn report(path: &Path, figures: &ModelCheck) -> String {
             }
         ));
         report.push(format!(
-            "t = {}..{}: A_eff band half-width b = {} (tol {:e}); joint filter (--band {k}): about {:.1} kflop per subsystem-step",
-            w.first,
-            w.last,
+            "{}: A_eff band half-width b = {} (tol {:e}); joint filter (--band {k}): about {:.1} kflop per subsystem-step",
+            span(w),
             w.a_eff_half_width,
             w.band_tol,
             w.joint_flops / 1e3,
         ));
     }
-    let memory = &figures.smoother_memory;
-    report.push(format!(
-        "smoothing memory for T = {}: distributed {}, joint (--band {k}) {}, centralized {} (--max-memory, default {})",
-        figures.steps,
-        human_bytes(memory.distributed),
-        human_bytes(memory.joint),
-        human_bytes(memory.centralized),
-        human_bytes(DEFAULT_MAX_MEMORY),
-    ));
+    if let (Some(memory), Some(steps)) = (&figures.smoother_memory, figures.steps) {
+        report.push(format!(
+            "smoothing memory for T = {steps}: distributed {}, joint (--band {k}) {}, centralized {} (--max-memory, default {})",
+            human_bytes(memory.distributed),
+            human_bytes(memory.joint),
+            human_bytes(memory.centralized),
+            human_bytes(DEFAULT_MAX_MEMORY),
+        ));
+    }
     report.join("\n")
+}
+
+/// `t = first..last` of a window, `t ≥ first` for one without end.
+fn span(w: &WindowCheck) -> String {
+    match w.last {
+        Some(last) => format!("t = {}..{last}", w.first),
+        None => format!("t ≥ {}", w.first),
+    }
 }

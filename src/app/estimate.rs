@@ -238,8 +238,20 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         inputs_name.as_deref(),
     );
     let out_name = args.out.display().to_string();
+    // Filtered rows reach a waiting reader step by step; smoothed ones only at the end.
+    let live = output.is_live() && spec.output() != EstimateKind::Smoothed;
     let writer = EstimatesWriter::new(output, args.format(), spec.columns(&model), Some(&metadata))
-        .map_err(|e| Error::io(&out_name, e))?;
+        .map_err(|e| Error::io(&out_name, e))?
+        .live(live);
+    if spec.output() == EstimateKind::Smoothed && !is_regular_file(&args.meas) {
+        let name = match args.meas.as_os_str() == "-" {
+            true => "standard input".to_string(),
+            false => args.meas.display().to_string(),
+        };
+        warn(format!(
+            "--smooth: {name} is a stream; the smoothed estimates need every step of it and come only once it ends (without --smooth, each step's estimates come as it arrives)"
+        ));
+    }
     let mut sink = WriterSink {
         writer: BackgroundWriter::new(writer, big_n),
         out_name,
@@ -284,6 +296,11 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Whether `path` is a regular file (not standard input, a pipe or a device).
+fn is_regular_file(path: &std::path::Path) -> bool {
+    path.as_os_str() != "-" && std::fs::metadata(path).is_ok_and(|m| m.is_file())
 }
 
 /// The estimates file of `estimate`, filled by a thread of its own as the run goes; the

@@ -100,7 +100,7 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
     };
     info(format!(
         "evaluate: {total_runs} runs of T = {} × N = {} on {} threads",
-        model.steps,
+        model.horizon()?,
         model.subsystems,
         rayon::current_num_threads()
     ));

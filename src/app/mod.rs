@@ -130,7 +130,7 @@ fn print_line(text: &str) -> Result<()> {
 /// for its `T` steps, or the inputs its config generates.
 fn run_inputs(model: &Model) -> Result<RunInputs> {
     Ok(match InputStream::path(model, None) {
-        Some(_) => RunInputs::read(InputStream::open(model, None)?, model, model.steps)?,
+        Some(_) => RunInputs::read(InputStream::open(model, None)?, model, model.horizon()?)?,
         None => RunInputs::generated(model)?,
     })
 }

@@ -26,6 +26,9 @@ pub struct SimulateArgs {
     /// Seed of every random draw (default: the config's `seed`, else 0).
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Number of time steps T (default: the config's `steps`; needed when it has none).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub steps: Option<u64>,
     /// Leave lost measurement elements empty in measurements.csv (for `--dropouts known`);
     /// by default they hold the noise R u + d, as in the paper's model.
     #[arg(long)]
@@ -36,9 +39,13 @@ pub struct SimulateArgs {
 pub fn run(args: &SimulateArgs) -> Result<()> {
     // The source too: run.json records the config's text.
     let src = ConfigSource::from_file(&args.config)?;
-    let model = Model::from_config(&src)?;
+    let mut model = Model::from_config(&src)?;
+    if let Some(steps) = args.steps {
+        model.steps = Some(usize::try_from(steps).unwrap_or(usize::MAX));
+    }
+    let steps = model.horizon()?;
     // Fail on an ill-posed chain or unusable inputs before creating anything.
-    for w in model.windows().iter().filter(|w| w.first <= model.steps) {
+    for w in model.windows().iter().filter(|w| w.first <= steps) {
         ChainSolver::new(&model, w.first)?;
     }
     let out_dir = &args.out;
@@ -119,7 +126,8 @@ fn write_simulation(
     let mut record_out = file(RunRecord::FILE)?;
 
     let mut y_row = vec![0.0; d.q];
-    simulate(model, model.steps, seed, &mut inputs, |step| {
+    let steps = model.horizon()?;
+    simulate(model, steps, seed, &mut inputs, |step| {
         for i in 0..model.subsystems {
             let gamma = step.gamma[i];
             truth
@@ -143,7 +151,7 @@ fn write_simulation(
         }
         Ok(())
     })?;
-    inputs.finish(model.steps)?;
+    inputs.finish(steps)?;
 
     let mut files = vec!["truth.csv".to_string(), "measurements.csv".to_string()];
     if d.m > 0 {
@@ -154,7 +162,7 @@ fn write_simulation(
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         seed,
         subsystems: model.subsystems,
-        steps: model.steps,
+        steps,
         mark_missing: args.mark_missing,
         config_path: args.config.display().to_string(),
         config_dir,
@@ -179,8 +187,7 @@ fn write_simulation(
     }
     record_out.commit()?;
     info(format!(
-        "simulate: T = {} steps × N = {} subsystems (seed {seed}) into {}",
-        model.steps,
+        "simulate: T = {steps} steps × N = {} subsystems (seed {seed}) into {}",
         model.subsystems,
         out_dir.display()
     ));

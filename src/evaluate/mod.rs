@@ -144,7 +144,7 @@ fn realise(model: &Model, inputs: &RunInputs, seed: u64) -> Result<Realisation> 
         u: vec![],
         gamma: vec![],
     };
-    simulate(model, model.steps, seed, &mut inputs.stream(), |s| {
+    simulate(model, model.horizon()?, seed, &mut inputs.stream(), |s| {
         r.x.push(s.x.to_vec());
         r.y.push(s.y.to_vec());
         let mut yk = s.y.to_vec();
@@ -199,7 +199,7 @@ fn smoother_schedule_bytes(
             big_n * ((kappa + 2.0) * 4.0 * n * n + (k as f64 + 2.0) * n * n)
         }
     };
-    Ok(8.0 * per_step * model.steps as f64)
+    Ok(8.0 * per_step * model.horizon()? as f64)
 }
 
 /// The options of the `joint` row, checked.
@@ -282,10 +282,10 @@ struct Scores {
 }
 
 impl Scores {
-    fn new(model: &Model) -> Self {
+    fn new(model: &Model, steps: usize) -> Self {
         Self {
             accuracy: Accuracy::new(model.dims.n),
-            per_step: StepNees::new(model.steps),
+            per_step: StepNees::new(steps),
             detection: Detection::default(),
             noted_runs: 0,
             first_note: None,
@@ -333,7 +333,7 @@ fn run_filters(
         let start = Instant::now();
         let result = (|| -> Result<Scores> {
             let mut acc = Accuracy::new(n);
-            let mut per_step = StepNees::new(model.steps);
+            let mut per_step = StepNees::new(model.horizon()?);
             let mut detection = Detection::default();
             let mut first_note = None;
             let mut score =
@@ -431,14 +431,15 @@ pub fn evaluate(
     tick: impl Fn() + Sync,
 ) -> Result<Evaluation> {
     let start = Instant::now();
+    let steps = model.horizon()?;
     if opts.runs == 0 {
         return Err(EvaluateError::NoRuns.into());
     }
-    if opts.burn_in >= model.steps {
+    if opts.burn_in >= steps {
         return Err(EvaluateError::NothingAfterBurnIn {
             burn_in: opts.burn_in,
             config: model.name.clone(),
-            steps: model.steps,
+            steps,
         }
         .into());
     }
@@ -451,14 +452,14 @@ pub fn evaluate(
     let d = model.dims;
     // x, y, y with the losses marked, u, and a vector header for each, per step.
     let per_step = (model.subsystems * (d.n + 2 * d.q + d.m) + 12) * std::mem::size_of::<f64>();
-    let realisation_bytes = (model.steps as f64) * (per_step as f64);
+    let realisation_bytes = (steps as f64) * (per_step as f64);
     if realisation_bytes > MAX_REALISATION_BYTES as f64 {
         return Err(Error::Config {
             file: model.name.clone(),
             key: "steps".into(),
             msg: format!(
                 "evaluate keeps every step of a run in memory: {} steps need about {realisation_bytes:.1e} bytes per run, expected at most {MAX_REALISATION_BYTES}",
-                model.steps
+                steps
             ),
         });
     }
@@ -491,7 +492,7 @@ pub fn evaluate(
     // The unknown-dropout covariance passes of the centralized and the joint filter do not
     // depend on the data (the inputs are the same in every run): compute them once.
     let mut stream = inputs.stream();
-    let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; model.steps];
+    let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; steps];
     for (t, ut) in u.iter_mut().enumerate() {
         stream.next(t + 1, ut)?;
     }
@@ -501,11 +502,11 @@ pub fn evaluate(
     };
     let mut schedules = Schedules {
         centralized: (needed(Compared::Centralized)
-            && CentralizedSchedule::bytes(model, model.steps) <= MAX_SCHEDULE_BYTES)
+            && CentralizedSchedule::bytes(model, steps) <= MAX_SCHEDULE_BYTES)
             .then(|| CentralizedSchedule::new(model, &u, opts.max_lifted))
             .transpose()?,
         joint: (needed(Compared::Joint)
-            && JointSchedule::bytes(model, opts.band, model.steps) <= MAX_SCHEDULE_BYTES)
+            && JointSchedule::bytes(model, opts.band, steps) <= MAX_SCHEDULE_BYTES)
             .then(|| JointSchedule::new(model, joint_options(&opts)?, &u))
             .transpose()?,
         smoothers: Vec::new(),
@@ -537,7 +538,7 @@ pub fn evaluate(
         })
         .collect::<Result<_>>()?;
 
-    let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model)).collect();
+    let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model, steps)).collect();
     let mut times = [0.0; COMPARED];
     for run in &results {
         for (k, (res, time)) in run.iter().enumerate() {
@@ -598,7 +599,7 @@ pub fn evaluate(
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.to_string(),
         subsystems: model.subsystems,
-        steps: model.steps,
+        steps,
         options: opts,
         filters,
         total_wall_time_s: start.elapsed().as_secs_f64(),
@@ -657,7 +658,7 @@ pub fn sweep_p(
         config: config.to_string(),
         options: opts,
         subsystems: model.subsystems,
-        steps: model.steps,
+        steps: model.horizon()?,
         sweep_p: values.to_vec(),
         evaluations,
         total_wall_time_s: start.elapsed().as_secs_f64(),

@@ -743,7 +743,7 @@ impl InnovationReport {
                     Cause::QTooSmall => (format!("{sign}; {nis}"), "Q is likely too small"),
                     Cause::QTooLarge => (format!("{sign}; {nis}"), "Q is likely too large"),
                     Cause::MTooSmall => (nis.clone(), "M is likely too small (or p too high)"),
-                    Cause::MTooLarge => (format!("{nis}, with {sign}"), "M is likely too large"),
+                    Cause::MTooLarge => (format!("{nis}, and {sign}"), "M is likely too large"),
                     Cause::MOrQTooLarge => (nis.clone(), "M or Q is likely too large"),
                     Cause::PWrong => {
                         let s = self.received_share.expect("a share");

@@ -297,6 +297,8 @@ pub struct EstimatesWriter<W: Write = Output> {
     first: bool,
     /// One buffer per chunk, sized once for the longest possible rows.
     buffers: Vec<Vec<u8>>,
+    /// A reader may be waiting: pass each step on as soon as it is written.
+    live: bool,
 }
 
 impl<W: Write> EstimatesWriter<W> {
@@ -338,7 +340,15 @@ impl<W: Write> EstimatesWriter<W> {
             format,
             first: true,
             buffers: Vec::new(),
+            live: false,
         })
+    }
+
+    /// The same writer, passing each step on (flushing its output) as soon as it is written
+    /// when `live`: for a reader waiting at a pipe, a named pipe or a terminal.
+    pub fn live(mut self, live: bool) -> Self {
+        self.live = live;
+        self
     }
 
     /// The columns written.
@@ -428,6 +438,9 @@ impl<W: Write> EstimatesWriter<W> {
             start += batch;
         }
         self.first &= rows == 0;
+        if self.live {
+            self.out.flush()?;
+        }
         Ok(())
     }
 
@@ -474,6 +487,8 @@ const BATCH_MIN_ROWS: usize = 4096;
 /// An [`EstimatesWriter`] on a thread of its own, behind the caller: formatting and the
 /// `write` system calls of step `t` overlap the reading and filtering of the next steps.
 /// Two batch buffers go back and forth through bounded channels, so a step allocates nothing.
+/// A live writer ([`EstimatesWriter::live`]) gets each step on its own, and passes it on at
+/// once.
 pub struct BackgroundWriter<W: Write + Send + 'static = Output> {
     to_writer: Option<std::sync::mpsc::SyncSender<StepBatch>>,
     free: std::sync::mpsc::Receiver<StepBatch>,
@@ -496,7 +511,11 @@ impl<W: Write + Send + 'static> BackgroundWriter<W> {
         let columns = writer.columns();
         let n = columns.n;
         let (step_x, step_p) = (rows * n, rows * n * n);
-        let per_batch = BATCH_MIN_ROWS.div_ceil(rows.max(1));
+        let per_batch = if writer.live {
+            1
+        } else {
+            BATCH_MIN_ROWS.div_ceil(rows.max(1))
+        };
         let (to_writer, from_caller) = std::sync::mpsc::sync_channel::<StepBatch>(2);
         let (to_caller, free) = std::sync::mpsc::sync_channel::<StepBatch>(2);
         for _ in 0..2 {

@@ -78,10 +78,10 @@ impl Output {
     /// `-` is standard output; anything else a file created atomically in an existing folder.
     pub fn create(dest: &Path) -> Result<Self> {
         if dest.as_os_str() == "-" {
-            return Ok(Output::Stdout(HeldStdout(Some(BufWriter::with_capacity(
-                BUFFER,
-                std::io::stdout(),
-            )))));
+            return Ok(Output::Stdout(HeldStdout {
+                out: Some(BufWriter::with_capacity(BUFFER, std::io::stdout())),
+                live: stdout_is_live(),
+            }));
         }
         let target = link_target(dest).map_err(|e| Error::io(dest, e))?;
         let existing = std::fs::metadata(&target).ok();
@@ -151,6 +151,17 @@ impl Output {
             dest: dest.to_path_buf(),
             target,
         })
+    }
+
+    /// Whether a reader may be waiting on the other side (a pipe, a named pipe, a terminal,
+    /// a socket: anything but a regular file), so that each step is worth passing on as soon
+    /// as it is written ([`Write::flush`] then passes it on).
+    pub fn is_live(&self) -> bool {
+        match self {
+            Output::Stdout(held) => held.live,
+            Output::File { .. } => false,
+            Output::Special { .. } => true,
+        }
     }
 
     /// The path written to, or `-`.
@@ -246,27 +257,53 @@ fn link_target(dest: &Path) -> std::io::Result<PathBuf> {
     ))
 }
 
-/// Buffered standard output that is only flushed by `HeldStdout::finish`: dropped on an
-/// error path, it discards what it still holds, so a failed run writes at most what had
-/// already overflowed the 1 MiB buffer (nothing, for most outputs).
-pub struct HeldStdout(Option<BufWriter<std::io::Stdout>>);
+/// Buffered standard output. Redirected to a regular file, it is only flushed by
+/// `HeldStdout::finish`: dropped on an error path, it discards what it still holds, so a
+/// failed run writes at most what had already overflowed the 1 MiB buffer (nothing, for most
+/// outputs). Live (a pipe or a terminal), [`Write::flush`] passes on what it holds, so that a
+/// reader gets each step as it is written.
+pub struct HeldStdout {
+    out: Option<BufWriter<std::io::Stdout>>,
+    live: bool,
+}
+
+/// Whether standard output is anything but a regular file.
+fn stdout_is_live() -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::fd::AsFd;
+        let meta = std::io::stdout()
+            .as_fd()
+            .try_clone_to_owned()
+            .map(std::fs::File::from)
+            .and_then(|f| f.metadata());
+        meta.map_or(true, |m| !m.is_file())
+    }
+    #[cfg(not(unix))]
+    {
+        use std::io::IsTerminal;
+        std::io::stdout().is_terminal()
+    }
+}
 
 impl HeldStdout {
     fn finish(&mut self) -> std::io::Result<()> {
-        match self.0.take() {
+        match self.out.take() {
             Some(mut w) => w.flush(),
             None => Ok(()),
         }
     }
 
     fn inner(&mut self) -> &mut BufWriter<std::io::Stdout> {
-        self.0.as_mut().expect("standard output used after finish")
+        self.out
+            .as_mut()
+            .expect("standard output used after finish")
     }
 }
 
 impl Drop for HeldStdout {
     fn drop(&mut self) {
-        if let Some(w) = self.0.take() {
+        if let Some(w) = self.out.take() {
             let _ = w.into_parts();
         }
     }
@@ -282,8 +319,13 @@ impl Write for HeldStdout {
     }
 
     fn flush(&mut self) -> std::io::Result<()> {
-        // Flushing is for `finish`: intermediate flushes would pass partial output on.
-        Ok(())
+        // Into a file, flushing is for `finish`: intermediate flushes would pass partial
+        // output on.
+        if self.live {
+            self.inner().flush()
+        } else {
+            Ok(())
+        }
     }
 }
 

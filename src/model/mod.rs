@@ -174,8 +174,9 @@ pub struct ModelData {
     pub dims: Dims,
     /// Chain length `N`.
     pub subsystems: usize,
-    /// Horizon `T` of `simulate` (the config's `steps`).
-    pub steps: usize,
+    /// Horizon `T` of `simulate` and `evaluate` (the config's `steps`, which may be left out:
+    /// `estimate` takes `T` from its data; see [`Model::horizon`]).
+    pub steps: Option<usize>,
     /// Default seed.
     pub seed: u64,
     /// `m0`.
@@ -281,7 +282,7 @@ impl Model {
                 format!("expected at most {MAX_SUBSYSTEMS} subsystems, found {subsystems}"),
             ));
         }
-        let steps = c.count("steps", raw.steps, 1)?;
+        let steps = raw.steps.map(|s| c.count("steps", s, 1)).transpose()?;
         let plus = c.count("interconnection.plus", raw.interconnection.plus, 0)?;
         let minus = c.count("interconnection.minus", raw.interconnection.minus, 0)?;
 
@@ -533,6 +534,15 @@ impl Model {
             }
         }
         (params, windows)
+    }
+
+    /// The horizon `T` the config gives (`steps`), which `simulate` and `evaluate` need.
+    pub fn horizon(&self) -> Result<usize> {
+        self.steps.ok_or_else(|| crate::Error::Config {
+            file: self.name.clone(),
+            key: "steps".into(),
+            msg: "not set: simulating needs the number of steps (add `steps = T` to the config; `simulate` also takes --steps)".into(),
+        })
     }
 
     /// The index of the window holding time step `t` (1-based).

@@ -280,7 +280,7 @@ pub struct Run {
 
 /// Simulates `model.steps` steps with the library's simulator.
 pub fn simulate_run(model: &sisfilt::model::Model, seed: u64) -> Run {
-    simulate_steps(model, model.steps, seed)
+    simulate_steps(model, model.horizon().unwrap(), seed)
 }
 
 /// Simulates `steps` steps with the library's simulator.

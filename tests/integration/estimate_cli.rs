@@ -930,24 +930,31 @@ fn early_errors_leave_stdout_empty() {
     assert!(out.stdout.is_empty(), "{}", describe(&out));
 }
 
-/// docs/theory.md §13: standard output carries only data, so a run that fails on bad input must not
-/// leave a truncated table there (standard output is held in a 1 MiB buffer and discarded on
-/// error; only a larger output can have reached it before the error).
+/// docs/theory.md §13: standard output carries only data. Into a pipe (here), each step goes
+/// out as it is filtered, so a run that fails on bad input at step `t` has written the
+/// steps before `t`, whole, and nothing of step `t` (into a regular file, nothing at all:
+/// see the tests of atomic output).
 #[test]
-fn mid_file_errors_leave_stdout_empty() {
+fn mid_file_errors_leave_only_whole_steps_on_a_pipe() {
     let s = BadFileSetup::new();
     let mut missing = s.lines.clone();
     missing.remove(BAD - 1);
     let path = s.file("missing_row.csv", &missing);
     let out = fails(&mut estimate(&s.config, &path, &[]), 2);
-    assert!(out.stdout.is_empty(), "{}", describe(&out));
+    // Line 45 is the row t = 3, i = 4: steps 1 and 2 went out.
+    let rows = text(&out.stdout);
+    assert_eq!(rows.lines().count(), 1 + 2 * 20, "{}", describe(&out));
+    assert!(rows.ends_with('\n'));
 
     let nan = edit_line(&s.lines, s.lines.len() - 3, |x| last_cell(x, "NaN"));
     let path = s.file("late_nan.csv", &nan);
-    for format in ["csv", "json"] {
-        let out = fails(&mut estimate(&s.config, &path, &["--format", format]), 2);
-        assert!(out.stdout.is_empty(), "{format}: {}", describe(&out));
-    }
+    let out = fails(&mut estimate(&s.config, &path, &["--format", "csv"]), 2);
+    assert_eq!(
+        text(&out.stdout).lines().count(),
+        1 + 199 * 20,
+        "{}",
+        describe(&out)
+    );
 }
 
 #[test]
@@ -1548,4 +1555,168 @@ fn known_dropout_log_likelihood_is_reported() {
         "{central} vs {joint}"
     );
     loglik(&[]);
+}
+
+/// Estimates as the data arrive: the measurements come through a named pipe and the
+/// estimates leave through another. With half of the steps written (and the writer still
+/// open), the estimates of exactly those steps arrive before the rest is written; then the
+/// rest. Every wait has a time limit, and the process is killed if one passes, so the test
+/// cannot hang.
+#[cfg(unix)]
+#[test]
+fn estimates_come_step_by_step_through_named_pipes() {
+    use std::io::{BufRead, BufReader, Write};
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    let dir = tmp();
+    let d = dir.path();
+    let config = shipped_config("platoon.toml");
+    simulate(&config, &d.join("run"), &[]);
+    let (big_n, steps, half) = (20, 200, 100);
+    let meas = std::fs::read_to_string(d.join("run/measurements.csv")).unwrap();
+    let lines: Vec<&str> = meas.lines().collect();
+    assert_eq!(lines.len(), 1 + big_n * steps);
+    let fifo = |name: &str| {
+        let path = d.join(name);
+        let c = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+        assert_eq!(
+            unsafe { libc::mkfifo(c.as_ptr(), 0o600) },
+            0,
+            "mkfifo {name}"
+        );
+        path
+    };
+    let (meas_fifo, out_fifo) = (fifo("meas.fifo"), fifo("out.fifo"));
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_sisfilt"))
+        .current_dir(d)
+        .args(["estimate", "--config", config.to_str().unwrap()])
+        .args([
+            "--meas",
+            "meas.fifo",
+            "--inputs",
+            "run/inputs.csv",
+            "--out",
+            "out.fifo",
+        ])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The reader of the estimates: each line as it comes.
+    let (line_tx, line_rx) = mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        let reader = BufReader::new(std::fs::File::open(out_fifo).unwrap());
+        for line in reader.lines() {
+            if line_tx.send(line.unwrap()).is_err() {
+                break;
+            }
+        }
+    });
+    // The writer of the measurements: half, then (when told) the rest.
+    let (go_tx, go_rx) = mpsc::channel::<()>();
+    let text: Vec<String> = lines.iter().map(|l| format!("{l}\n")).collect();
+    let writer = std::thread::spawn(move || {
+        let mut w = std::fs::OpenOptions::new()
+            .write(true)
+            .open(meas_fifo)
+            .unwrap();
+        let first = 1 + big_n * half;
+        w.write_all(text[..first].concat().as_bytes()).unwrap();
+        w.flush().unwrap();
+        if go_rx.recv_timeout(Duration::from_secs(60)).is_ok() {
+            w.write_all(text[first..].concat().as_bytes()).unwrap();
+        }
+    });
+    let mut received = Vec::new();
+    let mut wait_for = |count: usize, received: &mut Vec<String>| {
+        while received.len() < count {
+            match line_rx.recv_timeout(Duration::from_secs(30)) {
+                Ok(line) => received.push(line),
+                Err(_) => {
+                    let _ = child.kill();
+                    panic!("only {} of {count} lines arrived in time", received.len());
+                }
+            }
+        }
+    };
+    wait_for(1 + big_n * half, &mut received);
+    assert_eq!(received[0], estimates_header(2).join(","));
+    assert!(
+        received
+            .last()
+            .unwrap()
+            .starts_with(&format!("{half},{big_n},"))
+    );
+    // Nothing beyond the steps written: the next line would be step half + 1.
+    assert!(line_rx.recv_timeout(Duration::from_millis(300)).is_err());
+    go_tx.send(()).unwrap();
+    writer.join().unwrap();
+    wait_for(1 + big_n * steps, &mut received);
+    let status = child.wait().unwrap();
+    assert!(status.success());
+    assert!(
+        received
+            .last()
+            .unwrap()
+            .starts_with(&format!("{steps},{big_n},"))
+    );
+}
+
+/// Smoothing needs the whole file: asked on a stream (standard input), `estimate` says so,
+/// and still writes every smoothed step at the end.
+#[test]
+fn smoothing_a_stream_says_it_waits_for_the_end() {
+    let dir = tmp();
+    let d = dir.path();
+    let config = shipped_config("paper.toml");
+    simulate(&config, d, &[]);
+    let out = ok(
+        estimate(&config, Path::new("-"), &["--smooth", "--out", "s.csv"])
+            .current_dir(d)
+            .write_stdin(read(&d.join("measurements.csv"))),
+    );
+    let lines = stderr_lines(&out);
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.starts_with("warning: --smooth: standard input is a stream")),
+        "{lines:?}"
+    );
+    let file = read(&d.join("s.csv"));
+    assert_eq!(text(&file).lines().count(), 1 + 6 * 150);
+}
+
+/// A config without `steps` serves `estimate` (the file says how many steps it has),
+/// `check` (which says T is not set) and `simulate --steps`.
+#[test]
+fn a_config_without_steps_serves_estimate_check_and_simulate_with_steps() {
+    let dir = tmp();
+    let d = dir.path();
+    let shipped = std::fs::read_to_string(shipped_config("platoon.toml")).unwrap();
+    let without: String = shipped
+        .lines()
+        .filter(|l| !l.starts_with("steps"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    assert_ne!(without.len(), shipped.len());
+    write(&d.join("nosteps.toml"), &without);
+    let config = d.join("nosteps.toml");
+    ok(sisfilt()
+        .arg("simulate")
+        .arg(&config)
+        .args(["--steps", "37", "--out"])
+        .arg(d.join("run")));
+    let meas = text(&read(&d.join("run/measurements.csv")));
+    assert_eq!(meas.lines().count(), 1 + 20 * 37);
+    let out = ok(
+        estimate(&config, &d.join("run/measurements.csv"), &["--out", "-"])
+            .arg("--inputs")
+            .arg(d.join("run/inputs.csv")),
+    );
+    assert_eq!(text(&out.stdout).lines().count(), 1 + 20 * 37);
+    let out = ok(sisfilt().arg("check").arg(&config));
+    let report = text(&out.stdout);
+    assert!(report.contains("T not set"), "{report}");
+    assert!(report.contains("t ≥ 1:"), "{report}");
+    assert!(!report.contains("smoothing memory"), "{report}");
 }

@@ -220,7 +220,7 @@ fn full_band_equals_centralized_filter() {
     let models = full_band_models();
     for (name, model) in &models {
         // The first 30 steps: long enough to cross every override window of the chain.
-        let steps = 30.min(model.steps);
+        let steps = 30.min(model.horizon().unwrap());
         for (moment, dropouts) in [
             (SecondMoment::Band, Dropouts::Unknown),
             (SecondMoment::Lifted, Dropouts::Unknown),
@@ -251,7 +251,7 @@ fn full_band_equals_centralized_filter() {
 fn full_band_mixture_equals_centralized_mixture_filter() {
     let models = full_band_models();
     for (name, model) in &models {
-        let steps = 30.min(model.steps);
+        let steps = 30.min(model.horizon().unwrap());
         let opts = JointOptions {
             update: Update::Mixture,
             ..full_band(model, SecondMoment::Band, Dropouts::Unknown)
@@ -391,7 +391,13 @@ fn scheduled_joint_filter_equals_joint_filter() {
     let sched = JointSchedule::new(&model, opts, &run.u).unwrap();
     let mut replay = ScheduledJoint::new(&sched).unwrap();
     let mut joint = JointFilter::new(&model, opts).unwrap();
-    let gap = compare(&model, &mut replay, &mut joint, false, model.steps);
+    let gap = compare(
+        &model,
+        &mut replay,
+        &mut joint,
+        false,
+        model.horizon().unwrap(),
+    );
     assert!(
         gap.x < 1e-12 && gap.p == 0.0,
         "x {:e}, P {:e}",

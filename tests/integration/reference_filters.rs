@@ -358,7 +358,7 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
 /// config shortened to `steps`, simulated with `true_p` when given.
 fn mixture_against_nahi(name: &str, steps: usize, runs: usize, true_p: Option<f64>) -> Evaluation {
     let mut model = shipped_model(name);
-    model.steps = steps;
+    model.steps = Some(steps);
     let opts = EvaluateOptions {
         runs,
         seed: 1,

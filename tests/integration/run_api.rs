@@ -260,7 +260,7 @@ fn model_in_code(m: f64) -> sisfilt::config::RawConfig {
     use sisfilt::config::*;
     RawConfig {
         subsystems: 4,
-        steps: 5,
+        steps: Some(5),
         seed: 3,
         interconnection: RawInterconnection { plus: 1, minus: 1 },
         model: RawModel {

@@ -160,7 +160,7 @@ mod tests {
                     Q = [[0.01, 0.0], [0.0, 0.01]]\n[dropout]\np = 0.8\n\
                     [initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n";
         let model = Model::from_toml_str("s.toml", Path::new("."), text).unwrap();
-        let u = vec![Vec::new(); model.steps];
+        let u = vec![Vec::new(); model.horizon().unwrap()];
         for band in [1, 32] {
             let opts = JointOptions {
                 band,
@@ -176,7 +176,7 @@ mod tests {
                 .sum();
             assert_eq!(
                 held * size_of::<f64>(),
-                JointSchedule::bytes(&model, band, model.steps),
+                JointSchedule::bytes(&model, band, model.horizon().unwrap()),
                 "band {band}"
             );
         }
