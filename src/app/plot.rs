@@ -16,7 +16,9 @@ pub enum PlotCommand {
     /// measurements and the steps whose measurement was lost; below, the estimation error.
     Series(PlotSeriesArgs),
     /// Time × subsystem map of the normalised error |x̂ − x| / σ of one state element (or the
-    /// plain error |x̂ − x| with --plain): how errors spread along the chain.
+    /// plain error |x̂ − x| with --plain): how errors spread along the chain. Without --truth,
+    /// the map of √NIS from the estimates' nis column (estimate --nis): a faulty sensor shows
+    /// as a stripe.
     Heatmap(PlotHeatmapArgs),
     /// RMSE and average NEES of each filter from `sisfilt evaluate --out` (curves against p
     /// for `evaluate --sweep-p`).
@@ -58,13 +60,14 @@ pub struct PlotHeatmapArgs {
     /// Estimates file written by `sisfilt estimate` (CSV or JSON).
     #[arg(long)]
     pub estimates: PathBuf,
-    /// Truth CSV written by `sisfilt simulate`.
+    /// Truth CSV written by `sisfilt simulate`; without it, the map shows each measurement's
+    /// NIS (the estimates need the nis column of `estimate --nis`).
     #[arg(long)]
-    pub truth: PathBuf,
-    /// The state element k (1..n).
+    pub truth: Option<PathBuf>,
+    /// The state element k (1..n), with --truth.
     #[arg(long, default_value_t = 1)]
     pub state: usize,
-    /// Map the plain error |x̂ − x| instead of |x̂ − x| / σ.
+    /// Map the plain error |x̂ − x| instead of |x̂ − x| / σ (with --truth).
     #[arg(long)]
     pub plain: bool,
     /// The SVG file to write.

@@ -226,12 +226,18 @@ impl EstimatesFile {
         self.columns.values()
     }
 
-    /// Position of `P_kk` (0-based `k`) in a row of [`EstimatesFile::read_step`].
-    /// Where `π(t, i)` sits in a row, when the file has the `arrival` column.
+    /// Where `π(t, i)` sits in a row, when the file has the `arrival` column (before `nis`).
     pub fn arrival_index(&self) -> Option<usize> {
-        self.columns.arrival.then(|| self.row_width() - 1)
+        let after = usize::from(self.columns.nis);
+        self.columns.arrival.then(|| self.row_width() - 1 - after)
     }
 
+    /// Where the NIS of `(t, i)` sits in a row, when the file has the `nis` column (the last).
+    pub fn nis_index(&self) -> Option<usize> {
+        self.columns.nis.then(|| self.row_width() - 1)
+    }
+
+    /// Position of `P_kk` (0-based `k`) in a row of [`EstimatesFile::read_step`].
     pub fn variance_index(&self, k: usize) -> usize {
         variance_index(self.n, k)
     }

@@ -1,11 +1,15 @@
 //! `sisfilt plot heatmap`: the time × subsystem map of the error of one state element, the
-//! picture that shows how errors spread along the chain.
+//! picture that shows how errors spread along the chain — or, without a truth, of how far
+//! each measurement was from what the model predicted, where a broken sensor shows as a
+//! stripe.
 //!
-//! Each cell holds the normalised error `|x̂_k − x_k| / σ_k` (`σ_k² = P_kk`, the reported
-//! variance), or the plain error `|x̂_k − x_k|` with `--plain`. For a consistent filter the
-//! normalised error is half-normal: 95 % of the cells lie below 1.96. When the chain or the
-//! horizon is longer than the picture has room for, a cell stands for a block of `(t, i)` and
-//! shows their root mean square (the title says so).
+//! With a truth, each cell holds the normalised error `|x̂_k − x_k| / σ_k` (`σ_k² = P_kk`, the
+//! reported variance), or the plain error `|x̂_k − x_k|` with `--plain`. For a consistent
+//! filter the normalised error is half-normal: 95 % of the cells lie below 1.96. Without one,
+//! each cell holds `√NIS` from the estimates' `nis` column (docs/theory.md §14), whose square
+//! averages `q` (the elements measured) for a model that fits. When the chain or the horizon
+//! is longer than the picture has room for, a cell stands for a block of `(t, i)` and shows
+//! their root mean square (the title says so): for `√NIS`, the root of the average NIS.
 
 use std::path::PathBuf;
 
@@ -20,16 +24,26 @@ use super::{
 use crate::error::Error;
 use crate::io::Role;
 
-/// The error of state `k` at every `(t, i)`.
+/// What a map shows at each `(t, i)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Quantity {
+    /// `|x̂_k − x_k| / σ_k`.
+    NormalisedError,
+    /// `|x̂_k − x_k|`.
+    PlainError,
+    /// `√NIS` of the measurement (no truth needed).
+    Innovation,
+}
+
+/// The error of state `k` (or the innovation) at every `(t, i)`.
 pub struct ErrorMap {
     pub steps: usize,
     pub subsystems: usize,
     /// State element `k`, 1-based.
     pub state: usize,
-    /// `|x̂ − x|` instead of `|x̂ − x| / σ`.
-    pub plain: bool,
+    pub quantity: Quantity,
     /// `T × N` values, time-major (`values[(t − 1) N + (i − 1)]`); infinite where a resolved
-    /// error meets a zero variance.
+    /// error meets a zero variance; NaN where a measurement was not received (no NIS).
     pub values: Vec<f64>,
     /// The estimates file's name (for the title).
     pub estimates: String,
@@ -40,11 +54,12 @@ pub struct ErrorMap {
 pub struct HeatmapPlot {
     /// Estimates written by `estimate` (CSV or JSON).
     pub estimates: PathBuf,
-    /// Truth written by `simulate`.
-    pub truth: PathBuf,
+    /// Truth written by `simulate`; without it, the map shows the NIS of the estimates' `nis`
+    /// column.
+    pub truth: Option<PathBuf>,
     /// The state element `k` (1..n).
     pub state: usize,
-    /// Map the plain error `|x̂ − x|` instead of `|x̂ − x| / σ`.
+    /// Map the plain error `|x̂ − x|` instead of `|x̂ − x| / σ` (with a truth).
     pub plain: bool,
     /// The SVG file to write.
     pub out: PathBuf,
@@ -52,19 +67,22 @@ pub struct HeatmapPlot {
 
 /// `sisfilt plot heatmap`.
 pub fn run(args: &HeatmapPlot) -> Result<()> {
-    let inputs = [
-        Role::new("--truth", &args.truth),
-        Role::new("--estimates", &args.estimates),
-    ];
+    let inputs: Vec<Role> = (args.truth.iter().map(|t| Role::new("--truth", t)))
+        .chain([Role::new("--estimates", &args.estimates)])
+        .collect();
     let out = open_output(&args.out, &inputs)?;
     let map = read(args)?;
     let svg = render(&map)?;
     commit_svg(out, &svg)
 }
 
-/// Reads truth and estimates in lock-step, keeping the error of state `k`.
+/// Reads truth and estimates in lock-step, keeping the error of state `k`; without a truth,
+/// the estimates' NIS.
 pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
-    let mut truth = TruthFile::open(&args.truth)?;
+    let Some(truth_path) = &args.truth else {
+        return read_innovations(args);
+    };
+    let mut truth = TruthFile::open(truth_path)?;
     let mut est = EstimatesFile::open(&args.estimates)?;
     let truth_name = truth.reader.name().to_string();
     let (n, big_n) = (truth.n, truth.subsystems);
@@ -118,12 +136,48 @@ pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
         steps: values.len() / big_n,
         subsystems: big_n,
         state: args.state,
-        plain: args.plain,
+        quantity: if args.plain {
+            Quantity::PlainError
+        } else {
+            Quantity::NormalisedError
+        },
         values,
-        estimates: args
-            .estimates
-            .file_name()
-            .map_or_else(|| est.name().to_string(), |f| f.to_string_lossy().into()),
+        estimates: short_name(&args.estimates, &est),
+    })
+}
+
+/// The file name of the estimates, for the title.
+fn short_name(path: &std::path::Path, est: &EstimatesFile) -> String {
+    path.file_name()
+        .map_or_else(|| est.name().to_string(), |f| f.to_string_lossy().into())
+}
+
+/// Without a truth: `√NIS` of every `(t, i)` from the estimates' `nis` column.
+fn read_innovations(args: &HeatmapPlot) -> Result<ErrorMap> {
+    let mut est = EstimatesFile::open(&args.estimates)?;
+    if args.plain {
+        return Err(Error::Usage(
+            "--plain maps the estimation error, which needs --truth; without it the map shows each measurement's NIS".into(),
+        )
+        .into());
+    }
+    let at = est.nis_index().ok_or_else(|| Error::File {
+        file: est.name().to_string(),
+        msg: "has no `nis` column: without --truth the map shows each measurement's NIS, which `sisfilt estimate --nis` writes".into(),
+    })?;
+    let (width, big_n) = (est.row_width(), est.subsystems);
+    let mut row = vec![0.0; big_n * width];
+    let mut values = Vec::new();
+    while est.read_step(&mut row)?.is_some() {
+        values.extend((0..big_n).map(|i| row[i * width + at].sqrt()));
+    }
+    Ok(ErrorMap {
+        steps: values.len() / big_n,
+        subsystems: big_n,
+        state: args.state,
+        quantity: Quantity::Innovation,
+        values,
+        estimates: short_name(&args.estimates, &est),
     })
 }
 
@@ -234,7 +288,8 @@ fn quantile(sorted: &[f64], p: f64) -> f64 {
 /// The colour scale for the cell values: the normalised error on `0..3` (or up to its 99th
 /// percentile, rounded up) while that stays below 6, else on decades; the plain error on
 /// `0..` its 99th percentile, rounded up.
-fn choose_scale(cells: &[f64], plain: bool) -> Scale {
+fn choose_scale(cells: &[f64], quantity: Quantity) -> Scale {
+    let plain = quantity == Quantity::PlainError;
     let mut finite: Vec<f64> = cells.iter().copied().filter(|v| v.is_finite()).collect();
     finite.sort_by(f64::total_cmp);
     let p99 = quantile(&finite, 0.99);
@@ -277,14 +332,24 @@ fn bin(map: &ErrorMap) -> Binned {
         for i in 0..map.subsystems {
             let c = (t / bt) * rows + i / bi;
             let v = map.values[t * map.subsystems + i];
-            sums[c] += v * v;
-            counts[c] += 1;
+            // A measurement not received has no NIS: its cell counts the others.
+            if !v.is_nan() {
+                sums[c] += v * v;
+                counts[c] += 1;
+            }
         }
     }
+    // A cell of none: NaN, drawn blank.
     let cells = sums
         .iter()
         .zip(&counts)
-        .map(|(s, &c)| (s / c.max(1) as f64).sqrt())
+        .map(|(s, &c)| {
+            if c == 0 {
+                f64::NAN
+            } else {
+                (s / c as f64).sqrt()
+            }
+        })
         .collect();
     Binned {
         bt,
@@ -301,22 +366,20 @@ const BAR_WIDTH: u32 = 150;
 /// Renders the figure as an SVG document.
 pub fn render(map: &ErrorMap) -> Result<String> {
     let binned = bin(map);
-    let scale = choose_scale(&binned.cells, map.plain);
+    let scale = choose_scale(&binned.cells, map.quantity);
     let k = map.state;
-    let quantity = if map.plain {
-        format!("|x̂{k} − x{k}|")
-    } else {
-        format!("|x̂{k} − x{k}| / σ{k}")
+    let (what, quantity) = match map.quantity {
+        Quantity::PlainError => ("Estimation error", format!("|x̂{k} − x{k}|")),
+        Quantity::NormalisedError => (
+            "Normalised estimation error",
+            format!("|x̂{k} − x{k}| / σ{k}"),
+        ),
+        Quantity::Innovation => ("Normalised innovations", "√NIS".to_string()),
     };
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (WIDTH, HEIGHT)).into_drawing_area();
         root.fill(&WHITE)?;
-        let what = if map.plain {
-            "Estimation error"
-        } else {
-            "Normalised estimation error"
-        };
         let mut notes = Vec::new();
         if binned.bt > 1 || binned.bi > 1 {
             notes.push(format!(
@@ -329,10 +392,19 @@ pub fn render(map: &ErrorMap) -> Result<String> {
         } else {
             notes.push("each cell: one (t, i)".into());
         }
-        if !map.plain {
-            notes.push(format!(
+        match map.quantity {
+            Quantity::NormalisedError => notes.push(format!(
                 "σ{k}² = P{k}_{k}, the reported variance: a consistent filter keeps 95 % of the (t, i) below 1.96"
-            ));
+            )),
+            Quantity::Innovation => notes.push(
+                "NIS: each measurement against what the model predicted; it averages q (the elements measured) where the model fits, and a faulty sensor shows as a stripe"
+                    .into(),
+            ),
+            Quantity::PlainError => {}
+        }
+        let blank = binned.cells.iter().filter(|v| v.is_nan()).count();
+        if blank > 0 {
+            notes.push(format!("{blank} blank cells: no measurement received"));
         }
         let infinite = map.values.iter().filter(|v| v.is_infinite()).count();
         if infinite > 0 {
@@ -380,7 +452,12 @@ pub fn render(map: &ErrorMap) -> Result<String> {
                 let t1 = (((c + 1) * bt).min(map.steps)) as f64 + 0.5;
                 let i0 = (r * bi) as f64 + 0.5;
                 let i1 = (((r + 1) * bi).min(map.subsystems)) as f64 + 0.5;
-                let color = viridis(scale.fraction(cells[c * rows + r]));
+                let v = cells[c * rows + r];
+                let color = if v.is_nan() {
+                    WHITE
+                } else {
+                    viridis(scale.fraction(v))
+                };
                 Rectangle::new([(t0, i0), (t1, i1)], color.filled())
             })
         }))?;
@@ -468,10 +545,13 @@ mod tests {
     fn scales() {
         // A consistent filter: half-normal values, 0..3.
         let cells: Vec<f64> = (0..1000).map(|j| 2.6 * j as f64 / 999.0).collect();
-        assert_eq!(choose_scale(&cells, false), Scale::Linear { max: 3.0 });
+        assert_eq!(
+            choose_scale(&cells, Quantity::NormalisedError),
+            Scale::Linear { max: 3.0 }
+        );
         // Overconfident by orders of magnitude: decades.
         let cells: Vec<f64> = (0..1000).map(|j| 10f64.powf(j as f64 / 250.0)).collect();
-        let s = choose_scale(&cells, false);
+        let s = choose_scale(&cells, Quantity::NormalisedError);
         assert_eq!(s, Scale::Log { lo: 0.1, hi: 1e4 });
         assert!((s.fraction(1.0) - 0.2).abs() < 1e-12);
         assert_eq!(s.fraction(1e9), 1.0);
@@ -486,7 +566,7 @@ mod tests {
             steps: 1000,
             subsystems: 30,
             state: 1,
-            plain: true,
+            quantity: Quantity::PlainError,
             values: (0..30_000).map(|j| (j % 7) as f64).collect(),
             estimates: String::new(),
         };

@@ -948,3 +948,85 @@ fn quiet_drops_warnings_and_verbose_adds_info_lines() {
         .code(2);
     one_error_line(&out.get_output().stderr);
 }
+
+/// Without `--truth`, `plot heatmap` maps `√NIS` from the estimates' `nis` column, from the
+/// CSV and the JSON of the joint filter with the mixture update (cross-covariance and
+/// `arrival` columns before `nis`), the same from both. A sensor with an offset of 1 (five
+/// of its noise's standard deviations) shows as a stripe: the map's row of that subsystem averages far above the others (read through
+/// the library), and `estimate` names it. Estimates without the `nis` column are refused,
+/// naming the option that writes it.
+#[test]
+fn heatmap_without_truth_maps_the_innovations_and_shows_a_faulty_sensor() {
+    let dir = fixture();
+    // Subsystem 7's sensor reads 1 too high (a miscalibrated radar and odometer).
+    let meas = std::fs::read_to_string(dir.join("platoon/measurements.csv")).unwrap();
+    let stuck: String = meas
+        .lines()
+        .map(|l| {
+            let cells: Vec<&str> = l.split(',').collect();
+            if cells[1] == "7" {
+                let y = |k: usize| cells[k].parse::<f64>().unwrap() + 1.0;
+                format!("{},{},{},{}\n", cells[0], cells[1], y(2), y(3))
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    std::fs::write(dir.join("platoon/stuck.csv"), stuck).unwrap();
+    let mut outputs = Vec::new();
+    for out in ["platoon/nis.csv", "platoon/nis_.json"] {
+        let assert = run_ok(
+            dir,
+            &[
+                "estimate",
+                "--meas",
+                "platoon/stuck.csv",
+                "--inputs",
+                "platoon/inputs.csv",
+                "--filter",
+                "joint",
+                "--update",
+                "mixture",
+                "--nis",
+                "--out",
+                out,
+            ],
+        );
+        let stderr = String::from_utf8(assert.get_output().stderr.clone()).unwrap();
+        assert!(
+            stderr.contains("some subsystems stand out from the others: i = 7 "),
+            "{stderr}"
+        );
+        let svg = plot(&["heatmap", "--estimates", out], &format!("{out}.svg"));
+        let texts = texts(&svg);
+        assert_has_part(&texts, "Normalised innovations √NIS along the chain");
+        outputs.push(svg);
+    }
+    assert!(outputs[0].replace("nis.csv", "E") == outputs[1].replace("nis_.json", "E"));
+    let map = sisfilt::plot::heatmap::read(&sisfilt::plot::heatmap::HeatmapPlot {
+        estimates: dir.join("platoon/nis.csv"),
+        truth: None,
+        state: 1,
+        plain: false,
+        out: dir.join("unused.svg"),
+    })
+    .unwrap();
+    assert_eq!((map.steps, map.subsystems), (200, 20));
+    let mean_nis = |i: usize| {
+        (0..map.steps)
+            .map(|t| map.values[t * 20 + i - 1].powi(2))
+            .sum::<f64>()
+            / map.steps as f64
+    };
+    let others: f64 = (1..=20).filter(|&i| i != 7).map(mean_nis).sum::<f64>() / 19.0;
+    assert!(
+        mean_nis(7) > 10.0 * others,
+        "{} against {others}",
+        mean_nis(7)
+    );
+    let err = plot_error(&["heatmap", "--estimates", "platoon/estimates.csv"]);
+    assert!(
+        err.contains("platoon/estimates.csv") && err.contains("estimate --nis"),
+        "{err}"
+    );
+}
