@@ -4,6 +4,9 @@
 
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
 use serde::{Deserialize, Deserializer, Serialize};
+use statrs::distribution::{ContinuousCDF, StudentsT};
+
+use crate::innovations::BandBasis;
 
 /// Running sums over the scored `(t, i)` terms.
 #[derive(Debug, Clone)]
@@ -15,6 +18,11 @@ pub struct Accuracy {
     nees_terms: u64,
     left_out: u64,
     infinite: u64,
+    /// Over the runs merged with [`Accuracy::merge_run`] whose ANEES is finite: their
+    /// count, and the sum and the sum of squares of their ANEES.
+    runs: u64,
+    run_sum: f64,
+    run_squares: f64,
     /// Scratch: the error `x − x̂` and, per eigenpair of `P`, `(u_kᵀ e, λ_k)`.
     e: Vec<f64>,
     proj: Vec<(f64, f64)>,
@@ -43,8 +51,14 @@ pub struct AccuracyReport {
     pub rmse_overall: f64,
     /// Average NEES over the resolved terms; `None` (JSON `null`) when infinite.
     pub anees: Option<f64>,
-    /// 95 % band of the ANEES of a consistent filter, `χ²_{Kn}(0.025, 0.975) / (Kn)`.
+    /// 95 % band of the ANEES of a consistent filter: over two runs or more, `1 ± t s / √R`
+    /// from the spread `s` of the `R` runs' own ANEES (what is independent); else
+    /// `χ²_{Kn}(0.025, 0.975) / (Kn)`, as if the `K` terms were independent, which they are
+    /// not (only indicative). `anees_band_basis` says which.
     pub anees_band: [f64; 2],
+    /// `runs` or `independent_terms` (files from before it: the latter).
+    #[serde(default)]
+    pub anees_band_basis: BandBasis,
     /// Number of scored `(t, i)`.
     pub terms: u64,
     /// Terms in the ANEES.
@@ -76,6 +90,9 @@ impl Accuracy {
             nees_terms: 0,
             left_out: 0,
             infinite: 0,
+            runs: 0,
+            run_sum: 0.0,
+            run_squares: 0.0,
             e: Vec::with_capacity(n),
             proj: vec![(0.0, 0.0); n],
         }
@@ -151,12 +168,44 @@ impl Accuracy {
         self.nees_terms += other.nees_terms;
         self.left_out += other.left_out;
         self.infinite += other.infinite;
+        self.runs += other.runs;
+        self.run_sum += other.run_sum;
+        self.run_squares += other.run_squares;
+    }
+
+    /// [`Accuracy::merge`] of the sums of one independent run, whose own ANEES then counts
+    /// for the band of [`AccuracyReport::anees_band`].
+    pub fn merge_run(&mut self, run: &Accuracy) {
+        self.merge(run);
+        if run.infinite == 0 && run.nees_terms > 0 {
+            let anees = run.nees_sum / run.nees_terms as f64;
+            self.runs += 1;
+            self.run_sum += anees;
+            self.run_squares += anees * anees;
+        }
+    }
+
+    /// The 95 % band of a consistent filter's ANEES and what it rests on.
+    fn anees_band(&self) -> ([f64; 2], BandBasis) {
+        if self.runs < 2 {
+            return (
+                chi2_mean_band(self.nees_terms * self.n as u64),
+                BandBasis::IndependentTerms,
+            );
+        }
+        let r = self.runs as f64;
+        let mean = self.run_sum / r;
+        let variance = ((self.run_squares - r * mean * mean) / (r - 1.0)).max(0.0);
+        let t = StudentsT::new(0.0, 1.0, r - 1.0).map_or(f64::INFINITY, |d| d.inverse_cdf(0.975));
+        let half = t * (variance / r).sqrt();
+        ([(1.0 - half).max(0.0), 1.0 + half], BandBasis::Runs)
     }
 
     pub fn report(&self) -> AccuracyReport {
         let k = self.terms.max(1) as f64;
         let rmse: Vec<f64> = self.sum_sq.iter().map(|s| (s / k).sqrt()).collect();
         let rmse_overall = (self.sum_sq.iter().sum::<f64>() / (k * self.n as f64)).sqrt();
+        let (anees_band, anees_band_basis) = self.anees_band();
         let anees = if self.infinite > 0 {
             None
         } else {
@@ -166,7 +215,8 @@ impl Accuracy {
             rmse,
             rmse_overall,
             anees,
-            anees_band: chi2_mean_band(self.nees_terms * self.n as u64),
+            anees_band,
+            anees_band_basis,
             terms: self.terms,
             nees_terms: self.nees_terms,
             nees_left_out: self.left_out,
@@ -202,13 +252,20 @@ impl AccuracyReport {
             Some(a) => format!("{a:.4}"),
             None => "inf".into(),
         };
+        let [low, high] = self.anees_band;
+        let band = match self.anees_band_basis {
+            BandBasis::Runs => format!(
+                "95 % band of a consistent filter [{low:.4}, {high:.4}], from the spread of the runs' own averages"
+            ),
+            _ => format!(
+                "95 % band of a consistent filter [{low:.4}, {high:.4}] if the terms were independent; they are correlated in time and along the chain, so only indicative"
+            ),
+        };
         format!(
-            "RMSE {} (overall {:.4e}) over {} terms; average NEES {anees} (95 % band of a consistent filter [{:.4}, {:.4}])",
+            "RMSE {} (overall {:.4e}) over {} terms; average NEES {anees} ({band})",
             rmse.join(", "),
             self.rmse_overall,
             self.terms,
-            self.anees_band[0],
-            self.anees_band[1]
         )
     }
 }

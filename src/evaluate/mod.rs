@@ -292,8 +292,9 @@ impl Scores {
         }
     }
 
-    fn merge(&mut self, other: &Scores) {
-        self.accuracy.merge(&other.accuracy);
+    /// Adds the sums of one run (whose own ANEES counts for the band).
+    fn merge_run(&mut self, other: &Scores) {
+        self.accuracy.merge_run(&other.accuracy);
         self.per_step.merge(&other.per_step);
         self.detection.merge(&other.detection);
         self.noted_runs += other.noted_runs;
@@ -544,7 +545,7 @@ pub fn evaluate(
         for (k, (res, time)) in run.iter().enumerate() {
             times[k] += time;
             match res {
-                Ok(scores) => sums[k].merge(scores),
+                Ok(scores) => sums[k].merge_run(scores),
                 Err(e) if active[k] && skipped[k].is_none() => {
                     skipped[k] = Some(format!("failed: {e}"));
                 }

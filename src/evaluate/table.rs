@@ -186,6 +186,10 @@ impl Evaluation {
         for f in &self.filters {
             s += &format!("{:<w$} {}\n", f.name, f.description);
         }
+        s += &format!(
+            "{:<w$} of a consistent filter's ANEES: 1 ± t·s/√R from the spread s of the R runs' own ANEES (the terms of one run are correlated; the runs are independent)\n",
+            "95 % band"
+        );
         for note in notes {
             s += &format!("note: {note}\n");
         }

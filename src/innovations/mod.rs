@@ -511,14 +511,17 @@ pub enum Statistic {
     NisPi,
 }
 
-/// What a band was built from (docs/theory.md §14).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+/// What a band was built from (docs/theory.md §11, §14).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BandBasis {
-    /// The terms' own variances, as if independent.
+    /// The terms' own variances, as if independent: only indicative where they are not.
+    #[default]
     IndependentTerms,
     /// The spread of the sums over blocks of 25 steps, which sees their correlation in time.
     Blocks,
+    /// The spread of independent runs' averages (`evaluate`).
+    Runs,
 }
 
 /// The Ljung–Box test of a set of series.
@@ -699,6 +702,7 @@ impl InnovationReport {
             match self.band_basis {
                 BandBasis::IndependentTerms => "terms taken as independent",
                 BandBasis::Blocks => "from blocks of 25 steps",
+                BandBasis::Runs => "from the spread of runs",
             }
         );
         if let Some(lb) = &self.ljung_box {
