@@ -13,7 +13,7 @@ use sisfilt::innovations::{Cause, TermKind, TermScorer, TermWorkspace, scorer};
 use sisfilt::run::{RunSpec, estimate};
 
 use crate::common::{model_from, shipped_config, shipped_model, simulate_run, sisfilt};
-use crate::reference_filters::{CHAIN, dense_lifted};
+use crate::reference_filters::{CHAIN, dense_kalman_update, dense_predict};
 
 /// Per `(t, i)` the NIS, and per series `(i, k)` the standardised innovations over `t`
 /// (NaN where the element was lost), of the exact Kalman filter of the lifted chain on the
@@ -61,43 +61,8 @@ fn dense_reference(
             }
         }
         // The Kalman update on the received elements, then the prediction.
-        let obs: Vec<usize> = (0..big_n * q).filter(|&k| !y[k].is_nan()).collect();
-        let hm = DMatrix::from_fn(obs.len(), big_n * n, |r, c| {
-            let k = obs[r];
-            if c / n == k / q {
-                model.params(t, k / q + 1).J[(k % q, c % n)]
-            } else {
-                0.0
-            }
-        });
-        let mm = DMatrix::from_fn(obs.len(), obs.len(), |r, c| {
-            let (a, b) = (obs[r], obs[c]);
-            if a / q == b / q {
-                model.params(t, a / q + 1).M[(a % q, b % q)]
-            } else {
-                0.0
-            }
-        });
-        let yo = DVector::from_fn(obs.len(), |r, _| {
-            let k = obs[r];
-            y[k] - model.params(t, k / q + 1).R[(k % q, 0)] * u[t0][k / q]
-        });
-        if !obs.is_empty() {
-            let s = &hm * &p * hm.transpose() + mm;
-            let gain = &p * hm.transpose() * s.try_inverse().unwrap();
-            x = &x + &gain * (yo - &hm * &x);
-            p = (DMatrix::identity(big_n * n, big_n * n) - &gain * &hm) * &p;
-        }
-        let (a, b) = dense_lifted(model, t);
-        let qbig = DMatrix::from_fn(big_n * n, big_n * n, |r, c| {
-            if r / n == c / n {
-                model.params(t, r / n + 1).Q[(r % n, c % n)]
-            } else {
-                0.0
-            }
-        });
-        x = &a * &x + &b * DVector::from_column_slice(&u[t0]);
-        p = &a * &p * a.transpose() + qbig;
+        dense_kalman_update(model, t, y, &u[t0], &mut x, &mut p);
+        dense_predict(model, t, &u[t0], &mut x, &mut p);
     }
     (nis, series)
 }

@@ -187,7 +187,7 @@ fn lifted_matrices_equal_dense_construction() {
 fn centralized_known_equals_dense_lifted_kalman_filter() {
     let model = model_from(CHAIN);
     let run = simulate_run(&model, 9);
-    let (n, q, big_n) = (2, 2, 4);
+    let (n, big_n) = (2, 4);
     let mut cent = CentralizedFilter::new(&model, true, 100).unwrap();
     let mut x = DVector::from_fn(big_n * n, |r, _| [1.0, -0.5][r % n]);
     let mut p = DMatrix::zeros(big_n * n, big_n * n);
@@ -204,30 +204,7 @@ fn centralized_known_equals_dense_lifted_kalman_filter() {
             .map(|(k, &v)| if (k * 7 + t) % 3 == 0 { f64::NAN } else { v })
             .collect();
         cent.step(&y, &run.u[t0]).unwrap();
-        let obs: Vec<usize> = (0..big_n * q).filter(|&k| !y[k].is_nan()).collect();
-        let jm = |k: usize| model.params(t, k / q + 1).J.row(k % q).into_owned();
-        let hm = DMatrix::from_fn(obs.len(), big_n * n, |r, c| {
-            let k = obs[r];
-            if c / n == k / q { jm(k)[c % n] } else { 0.0 }
-        });
-        let mm = DMatrix::from_fn(obs.len(), obs.len(), |r, c| {
-            let (a, b) = (obs[r], obs[c]);
-            if a / q == b / q {
-                model.params(t, a / q + 1).M[(a % q, b % q)]
-            } else {
-                0.0
-            }
-        });
-        let yo = DVector::from_fn(obs.len(), |r, _| {
-            let k = obs[r];
-            y[k] - model.params(t, k / q + 1).R[(k % q, 0)] * run.u[t0][k / q]
-        });
-        if !obs.is_empty() {
-            let s = &hm * &p * hm.transpose() + mm;
-            let gain = &p * hm.transpose() * s.try_inverse().unwrap();
-            x = &x + &gain * (yo - &hm * &x);
-            p = (DMatrix::identity(big_n * n, big_n * n) - &gain * &hm) * &p;
-        }
+        dense_kalman_update(&model, t, &y, &run.u[t0], &mut x, &mut p);
         let (xf, pf) = cent.filtered();
         for k in 0..big_n * n {
             assert!(
@@ -248,17 +225,71 @@ fn centralized_known_equals_dense_lifted_kalman_filter() {
                 }
             }
         }
-        let (a, b) = dense_lifted(&model, t);
-        let qbig = DMatrix::from_fn(big_n * n, big_n * n, |r, c| {
-            if r / n == c / n {
-                model.params(t, r / n + 1).Q[(r % n, c % n)]
-            } else {
-                0.0
-            }
-        });
-        x = &a * &x + &b * DVector::from_column_slice(&run.u[t0]);
-        p = &a * &p * a.transpose() + qbig;
+        dense_predict(&model, t, &run.u[t0], &mut x, &mut p);
     }
+}
+
+/// The Kalman update of the lifted chain's `N(x, p)` at `t` on the received elements of `y`
+/// (NaN: lost), independent of the library's filters (two measured elements, one input).
+pub fn dense_kalman_update(
+    model: &Model,
+    t: usize,
+    y: &[f64],
+    u: &[f64],
+    x: &mut DVector<f64>,
+    p: &mut DMatrix<f64>,
+) {
+    let (n, q, size) = (model.dims.n, model.dims.q, x.len());
+    let obs: Vec<usize> = (0..y.len()).filter(|&k| !y[k].is_nan()).collect();
+    let hm = DMatrix::from_fn(obs.len(), size, |r, c| {
+        let k = obs[r];
+        if c / n == k / q {
+            model.params(t, k / q + 1).J[(k % q, c % n)]
+        } else {
+            0.0
+        }
+    });
+    let mm = DMatrix::from_fn(obs.len(), obs.len(), |r, c| {
+        let (a, b) = (obs[r], obs[c]);
+        if a / q == b / q {
+            model.params(t, a / q + 1).M[(a % q, b % q)]
+        } else {
+            0.0
+        }
+    });
+    let yo = DVector::from_fn(obs.len(), |r, _| {
+        let k = obs[r];
+        y[k] - model.params(t, k / q + 1).R[(k % q, 0)] * u[k / q]
+    });
+    if !obs.is_empty() {
+        let s = &hm * &*p * hm.transpose() + mm;
+        let gain = &*p * hm.transpose() * s.try_inverse().unwrap();
+        *x = &*x + &gain * (yo - &hm * &*x);
+        *p = (DMatrix::identity(size, size) - &gain * &hm) * &*p;
+    }
+}
+
+/// The prediction of the lifted chain's `N(x, p)` from `t` to `t + 1` with the dense
+/// `A_eff`, `U_eff` of [`dense_lifted`] and `blkdiag(Q)`.
+pub fn dense_predict(
+    model: &Model,
+    t: usize,
+    u: &[f64],
+    x: &mut DVector<f64>,
+    p: &mut DMatrix<f64>,
+) {
+    let n = model.dims.n;
+    let size = x.len();
+    let (a, b) = dense_lifted(model, t);
+    let qbig = DMatrix::from_fn(size, size, |r, c| {
+        if r / n == c / n {
+            model.params(t, r / n + 1).Q[(r % n, c % n)]
+        } else {
+            0.0
+        }
+    });
+    *x = &a * &*x + &b * DVector::from_column_slice(u);
+    *p = &a * &*p * a.transpose() + qbig;
 }
 
 /// The `lifted` second moments `S_ii = P_ii + m_i m_iᵀ` against a Monte Carlo estimate of
