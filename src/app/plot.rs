@@ -14,6 +14,8 @@ use sisfilt::plot::series::SeriesPlot;
 pub enum PlotCommand {
     /// One state element of one subsystem against time: truth, estimate with its ±2σ band,
     /// measurements and the steps whose measurement was lost; below, the estimation error.
+    /// Without --truth, the estimate, its band and the measurements; below, the NIS of each
+    /// measurement with its band (from the estimates' nis column, estimate --nis).
     Series(PlotSeriesArgs),
     /// Time × subsystem map of the normalised error |x̂ − x| / σ of one state element (or the
     /// plain error |x̂ − x| with --plain): how errors spread along the chain. Without --truth,
@@ -30,9 +32,10 @@ pub struct PlotSeriesArgs {
     /// Estimates file written by `sisfilt estimate` (CSV or JSON).
     #[arg(long)]
     pub estimates: PathBuf,
-    /// Truth CSV written by `sisfilt simulate` (`t,i,x1..xn,gamma`).
+    /// Truth CSV written by `sisfilt simulate` (`t,i,x1..xn,gamma`); without it the second
+    /// panel shows the NIS (estimate --nis) instead of the error.
     #[arg(long)]
-    pub truth: PathBuf,
+    pub truth: Option<PathBuf>,
     /// Measurement CSV (`t,i,y1..yq`): drawn over the state when a row of J picks that state
     /// alone, else in a panel of its own.
     #[arg(long)]

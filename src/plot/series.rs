@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
+use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 use super::data::{
     EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, one_based, same_chain,
@@ -57,9 +58,16 @@ pub struct SeriesData {
     /// Subsystem `i` and state element `k`, 1-based.
     pub subsystem: usize,
     pub state: usize,
-    pub truth: Vec<f64>,
-    /// Whether the measurement of `(t, i)` arrived.
-    pub gamma: Vec<bool>,
+    /// The steps drawn.
+    pub steps: usize,
+    /// The true state, with a truth file.
+    pub truth: Option<Vec<f64>>,
+    /// Whether the measurement of `(t, i)` arrived, with a truth file.
+    pub gamma: Option<Vec<bool>>,
+    /// Without a truth: the NIS of `(t, i)` from the estimates' `nis` column (docs/theory.md
+    /// §14), and the measured elements `q` for its band when known.
+    pub nis: Option<Vec<f64>>,
+    pub nis_q: Option<usize>,
     /// The estimates' `π(t, i)`, the probability the filter gave to the measurement having
     /// arrived, when they carry it.
     pub arrival: Option<Vec<f64>>,
@@ -73,8 +81,9 @@ pub struct SeriesData {
 pub struct SeriesPlot {
     /// Estimates written by `estimate` (CSV or JSON).
     pub estimates: PathBuf,
-    /// Truth written by `simulate` (`t,i,x1..xn,gamma`).
-    pub truth: PathBuf,
+    /// Truth written by `simulate` (`t,i,x1..xn,gamma`); without it, the second panel shows
+    /// the NIS of the estimates' `nis` column instead of the error.
+    pub truth: Option<PathBuf>,
     /// Measurements (`t,i,y1..yq`), drawn when given.
     pub meas: Option<PathBuf>,
     /// Second estimates (e.g. smoothed), drawn with their own band.
@@ -91,10 +100,9 @@ pub struct SeriesPlot {
 
 /// `sisfilt plot series`.
 pub fn run(args: &SeriesPlot) -> Result<()> {
-    let mut inputs = vec![
-        Role::new("--truth", &args.truth),
-        Role::new("--estimates", &args.estimates),
-    ];
+    let mut inputs: Vec<Role> = (args.truth.iter().map(|t| Role::new("--truth", t)))
+        .chain([Role::new("--estimates", &args.estimates)])
+        .collect();
     let optional = [
         ("--smoothed", &args.smoothed),
         ("--meas", &args.meas),
@@ -107,9 +115,10 @@ pub fn run(args: &SeriesPlot) -> Result<()> {
     }
     // Without --config, the model comes from the run record beside the measurements.
     let records: Vec<PathBuf> = match (&args.meas, &args.config) {
-        (Some(meas), None) => [meas, &args.truth]
+        (Some(meas), None) => std::iter::once(meas)
+            .chain(args.truth.as_ref())
             .map(|p| folder_of(p).join(RunRecord::FILE))
-            .into(),
+            .collect(),
         _ => Vec::new(),
     };
     inputs.extend(records.iter().map(|p| Role::new("the run record", p)));
@@ -128,7 +137,7 @@ fn file_name(path: &Path) -> String {
 
 /// Reads the files of `args` in lock-step and keeps subsystem `i`, state `k`.
 pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
-    let mut truth = TruthFile::open(&args.truth)?;
+    let mut truth = args.truth.as_deref().map(TruthFile::open).transpose()?;
     let mut est = EstimatesFile::open(&args.estimates)?;
     let mut smooth = args
         .smoothed
@@ -140,15 +149,18 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         .as_deref()
         .map(MeasurementFile::open)
         .transpose()?;
-    let truth_name = truth.reader.name().to_string();
-    let (n, big_n) = (truth.n, truth.subsystems);
+    // The file the others are checked against: the truth, else the estimates.
+    let (ref_name, n, big_n) = match &truth {
+        Some(t) => (t.reader.name().to_string(), t.n, t.subsystems),
+        None => (est.name().to_string(), est.n, est.subsystems),
+    };
     for e in std::iter::once(&est).chain(smooth.as_ref()) {
-        same_chain((e.name(), e.subsystems), (&truth_name, big_n))?;
+        same_chain((e.name(), e.subsystems), (&ref_name, big_n))?;
         if e.n != n {
             return Err(Error::File {
                 file: e.name().to_string(),
                 msg: format!(
-                    "holds n = {} states per subsystem, but {truth_name} holds n = {n}: were they written for the same run?",
+                    "holds n = {} states per subsystem, but {ref_name} holds n = {n}: were they written for the same run?",
                     e.n
                 ),
             }
@@ -156,34 +168,38 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         }
     }
     if let Some(m) = &meas {
-        same_chain((m.reader.name(), m.subsystems), (&truth_name, big_n))?;
+        same_chain((m.reader.name(), m.subsystems), (&ref_name, big_n))?;
     }
     let i = one_based(
         "--subsystem",
         args.subsystem,
         big_n,
-        &format!("{truth_name} holds N = {big_n} subsystems"),
+        &format!("{ref_name} holds N = {big_n} subsystems"),
     )?;
     let k = one_based(
         "--state",
         args.state,
         n,
-        &format!("{truth_name} holds n = {n} states per subsystem"),
+        &format!("{ref_name} holds n = {n} states per subsystem"),
     )?;
 
-    let mut x_true = vec![0.0; truth.row_values()];
+    let mut x_true = vec![0.0; truth.as_ref().map_or(0, TruthFile::row_values)];
     let width = est.row_width();
     let mut x_est = vec![0.0; big_n * width];
     let mut x_smooth = vec![0.0; big_n * width];
     let q = meas.as_ref().map_or(0, |m| m.q);
     let mut y = vec![0.0; big_n * q];
     let var_at = est.variance_index(k);
+    let nis_at = est.nis_index().filter(|_| truth.is_none());
 
     let mut data = SeriesData {
         subsystem: args.subsystem,
         state: args.state,
-        truth: vec![],
-        gamma: vec![],
+        steps: 0,
+        truth: truth.as_ref().map(|_| Vec::new()),
+        gamma: truth.as_ref().map(|_| Vec::new()),
+        nis: nis_at.map(|_| Vec::new()),
+        nis_q: None,
         arrival: est.arrival_index().map(|_| Vec::new()),
         estimate: Track {
             name: file_name(&args.estimates),
@@ -199,79 +215,104 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
     };
     let mut y_kept = Vec::new();
     loop {
-        let t_truth = truth.reader.read_step(&mut x_true)?;
         let t_est = est.read_step(&mut x_est)?;
-        let Some(t) = t_truth else {
-            if let Some(t) = t_est {
-                return Err(ends_early(&truth_name, est.name(), t - 1).into());
-            }
-            break;
+        let t_truth = match truth.as_mut() {
+            Some(tr) => tr.reader.read_step(&mut x_true)?,
+            None => t_est,
         };
-        if t_est.is_none() {
-            return Err(ends_early(est.name(), &truth_name, t - 1).into());
+        let t = match (t_truth, t_est) {
+            (None, None) => break,
+            (Some(t), None) => return Err(ends_early(est.name(), &ref_name, t - 1).into()),
+            (None, Some(t)) => return Err(ends_early(&ref_name, est.name(), t - 1).into()),
+            (Some(t), Some(_)) => t,
+        };
+        let x_hat = x_est[i * width + k];
+        if let (Some(tr), Some(g)) = (data.truth.as_mut(), data.gamma.as_mut()) {
+            drawable_error(t, i, x_hat, x_true[i * (n + 1) + k])?;
+            tr.push(x_true[i * (n + 1) + k]);
+            g.push(x_true[i * (n + 1) + n] != 0.0);
+        } else {
+            drawable_error(t, i, x_hat, 0.0)?;
         }
-        drawable_error(t, i, x_est[i * width + k], x_true[i * (n + 1) + k])?;
-        data.truth.push(x_true[i * (n + 1) + k]);
-        data.gamma.push(x_true[i * (n + 1) + n] != 0.0);
-        data.estimate.x.push(x_est[i * width + k]);
+        data.estimate.x.push(x_hat);
         data.estimate.var.push(x_est[i * width + var_at]);
         if let (Some(pi), Some(at)) = (data.arrival.as_mut(), est.arrival_index()) {
             pi.push(x_est[i * width + at]);
         }
+        if let (Some(v), Some(at)) = (data.nis.as_mut(), nis_at) {
+            v.push(x_est[i * width + at]);
+        }
         if let (Some(s), Some(track)) = (smooth.as_mut(), data.smoothed.as_mut()) {
             if s.read_step(&mut x_smooth)?.is_none() {
-                return Err(ends_early(s.name(), &truth_name, t - 1).into());
+                return Err(ends_early(s.name(), &ref_name, t - 1).into());
             }
-            drawable_error(t, i, x_smooth[i * width + k], x_true[i * (n + 1) + k])?;
+            let reference = data.truth.as_ref().map_or(0.0, |tr| tr[t - 1]);
+            drawable_error(t, i, x_smooth[i * width + k], reference)?;
             track.x.push(x_smooth[i * width + k]);
             track.var.push(x_smooth[i * width + var_at]);
         }
         if let Some(m) = meas.as_mut() {
             if m.reader.read_step(&mut y)?.is_none() {
-                return Err(ends_early(m.reader.name(), &truth_name, t - 1).into());
+                return Err(ends_early(m.reader.name(), &ref_name, t - 1).into());
             }
             y_kept.extend_from_slice(&y[i * q..(i + 1) * q]);
         }
+        data.steps = t;
     }
-    let steps = data.truth.len();
-    // Every file must end where the truth ends.
+    let steps = data.steps;
+    // Every file must end where the reference ends.
     if let Some(s) = smooth.as_mut()
         && s.read_step(&mut x_smooth)?.is_some()
     {
-        return Err(ends_early(&truth_name, s.name(), steps).into());
+        return Err(ends_early(&ref_name, s.name(), steps).into());
     }
     if let Some(m) = meas.as_mut()
         && m.reader.read_step(&mut y)?.is_some()
     {
-        return Err(ends_early(&truth_name, m.reader.name(), steps).into());
+        return Err(ends_early(&ref_name, m.reader.name(), steps).into());
+    }
+    if truth.is_none() && data.nis.is_none() {
+        warn(format!(
+            "{}: has no `nis` column, so without --truth the figure has no second panel; `sisfilt estimate --nis` writes it",
+            est.name()
+        ));
     }
     if let Some(meas_path) = &args.meas {
-        let (direct, why_separate) =
-            match measurement_model(args.config.as_deref(), meas_path, &args.truth)? {
-                Some(model) => direct_row(&model, q, n, big_n, args.subsystem, k, steps),
-                None => (
-                    None,
-                    "no config (pass --config, or keep run.json beside the data) to tell which state y measures".into(),
-                ),
-            };
+        let model = measurement_model(args.config.as_deref(), meas_path, args.truth.as_deref())?;
+        data.nis_q = Some(q);
+        let (direct, why_separate) = match model {
+            Some(model) => direct_row(&model, q, n, big_n, args.subsystem, k, steps),
+            None => (
+                None,
+                "no config (pass --config, or keep run.json beside the data) to tell which state y measures".into(),
+            ),
+        };
         data.meas = Some(Measured {
             y: y_kept,
             q,
             direct,
             why_separate,
         });
+    } else if let Some(config) = &args.config {
+        data.nis_q = Some(Model::load(config)?.dims.q);
     }
     Ok(data)
 }
 
 /// The model that says what `y` measures: `--config`, else the `run.json` beside the
 /// measurements or the truth. A run record that cannot be used only costs the overlay.
-fn measurement_model(config: Option<&Path>, meas: &Path, truth: &Path) -> Result<Option<Model>> {
+fn measurement_model(
+    config: Option<&Path>,
+    meas: &Path,
+    truth: Option<&Path>,
+) -> Result<Option<Model>> {
     if let Some(path) = config {
         return Ok(Some(Model::load(path)?));
     }
     let mut dirs = vec![folder_of(meas)];
-    if folder_of(truth) != dirs[0] {
+    if let Some(truth) = truth
+        && folder_of(truth) != dirs[0]
+    {
         dirs.push(folder_of(truth));
     }
     for dir in dirs {
@@ -351,9 +392,10 @@ const TITLE_HEIGHT: u32 = 44;
 /// Renders the figure as an SVG document.
 pub fn render(d: &SeriesData) -> Result<String> {
     let separate_meas = d.meas.as_ref().filter(|m| m.direct.is_none());
+    let second = d.truth.is_some() || d.nis.is_some();
     let height = TITLE_HEIGHT
         + STATE_PANEL
-        + ERROR_PANEL
+        + if second { ERROR_PANEL } else { 0 }
         + if separate_meas.is_some() {
             MEAS_PANEL
         } else {
@@ -367,22 +409,31 @@ pub fn render(d: &SeriesData) -> Result<String> {
         draw_centered(
             &title,
             &format!(
-                "Subsystem {}, state x{}: {} against the truth",
+                "Subsystem {}, state x{}: {} {}",
                 d.subsystem,
                 d.state,
                 std::iter::once(&d.estimate)
                     .chain(d.smoothed.as_ref())
                     .map(|t| t.name.as_str())
                     .collect::<Vec<_>>()
-                    .join(" and ")
+                    .join(" and "),
+                if d.truth.is_some() {
+                    "against the truth"
+                } else {
+                    "(no truth: the innovations tell how well the model fits)"
+                }
             ),
             12,
             TITLE_SIZE,
         )?;
         let (state_area, rest) = rest.split_vertically(STATE_PANEL);
-        let (error_area, meas_area) = rest.split_vertically(ERROR_PANEL);
+        let (error_area, meas_area) = rest.split_vertically(if second { ERROR_PANEL } else { 0 });
         state_panel(&state_area, d)?;
-        error_panel(&error_area, d)?;
+        match (&d.truth, &d.gamma, &d.nis) {
+            (Some(truth), Some(gamma), _) => error_panel(&error_area, d, truth, gamma)?,
+            (None, _, Some(nis)) => nis_panel(&error_area, d, nis)?,
+            _ => {}
+        }
         if let Some(m) = separate_meas {
             meas_panel(&meas_area, d, m)?;
         }
@@ -392,9 +443,14 @@ pub fn render(d: &SeriesData) -> Result<String> {
 }
 
 /// The lost-measurement ticks: one short vertical line per `t` with `gamma = 0`, in the strip
-/// `y0..y1` along the time axis.
-fn lost_ticks(gamma: &[bool], y0: f64, y1: f64) -> impl Iterator<Item = PathElement<(f64, f64)>> {
+/// `y0..y1` along the time axis (none without a truth).
+fn lost_ticks(
+    gamma: Option<&[bool]>,
+    y0: f64,
+    y1: f64,
+) -> impl Iterator<Item = PathElement<(f64, f64)>> {
     gamma
+        .unwrap_or_default()
         .iter()
         .enumerate()
         .filter(|(_, g)| !**g)
@@ -512,15 +568,14 @@ fn line<DB: DrawingBackend>(
     )
 }
 
-fn lost_entry(d: &SeriesData) -> (Swatch, String) {
-    let lost = d.gamma.iter().filter(|g| !**g).count();
-    (
+/// The legend entry of the lost-measurement ticks, with a truth.
+fn lost_entry(d: &SeriesData) -> Option<(Swatch, String)> {
+    let gamma = d.gamma.as_ref()?;
+    let lost = gamma.iter().filter(|g| !**g).count();
+    Some((
         Swatch::Tick(LOST),
-        format!(
-            "measurement lost (γ = 0): {lost} of {} steps",
-            d.gamma.len()
-        ),
-    )
+        format!("measurement lost (γ = 0): {lost} of {} steps", gamma.len()),
+    ))
 }
 
 /// The estimates drawn, each with its colour: the estimate, and the smoothed one if given.
@@ -532,9 +587,9 @@ fn tracks(d: &SeriesData) -> Vec<(&Track, RGBColor)> {
 }
 
 fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
-    let steps = d.truth.len();
+    let steps = d.steps;
     let tracks = tracks(d);
-    let mut range = extent(d.truth.iter());
+    let mut range = extent(d.truth.iter().flatten());
     for (tr, _) in &tracks {
         for t in 0..steps {
             let s = two_sigma(tr.var[t]);
@@ -545,7 +600,9 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     if let Some((m, r)) = direct {
         range = union(range, extent(m.y.iter().skip(r).step_by(m.q)));
     }
-    let mut legend = vec![(Swatch::Line(TRUTH), "truth".to_string())];
+    let mut legend: Vec<_> = (d.truth.iter())
+        .map(|_| (Swatch::Line(TRUTH), "truth".to_string()))
+        .collect();
     for (tr, c) in &tracks {
         legend.push((Swatch::LineBand(*c), format!("{} ± 2σ", tr.name)));
     }
@@ -555,14 +612,15 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
             &[(MEASURED, format!("measurement y{}", r + 1))],
         ));
     }
-    legend.push(lost_entry(d));
+    legend.extend(lost_entry(d));
 
     let axis = with_strip(range.0, range.1)?;
     let mut ch = chart(
         area,
         &format!(
-            "x{} against time: truth, estimate and its ±2σ band",
-            d.state
+            "x{} against time: {}estimate and its ±2σ band",
+            d.state,
+            if d.truth.is_some() { "truth, " } else { "" }
         ),
         &legend,
         steps,
@@ -575,23 +633,25 @@ fn state_panel(area: &Area, d: &SeriesData) -> Result<()> {
     if let Some((m, r)) = direct {
         draw_measurements(&mut ch, d, m, r, MEASURED)?;
     }
-    ch.draw_series(line(d.truth.iter().copied(), TRUTH))?;
+    if let Some(truth) = &d.truth {
+        ch.draw_series(line(truth.iter().copied(), TRUTH))?;
+    }
     for (tr, c) in &tracks {
         ch.draw_series(line(tr.x.iter().copied(), *c))?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    ch.draw_series(lost_ticks(d.gamma.as_deref(), axis.strip.0, axis.strip.1))?;
     Ok(())
 }
 
-fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
-    let steps = d.truth.len();
+fn error_panel(area: &Area, d: &SeriesData, truth: &[f64], gamma: &[bool]) -> Result<()> {
+    let steps = d.steps;
     let tracks = tracks(d);
     let mut bound: f64 = 0.0;
     let mut legend = Vec::new();
     for (tr, c) in &tracks {
         let mut inside = 0;
         for t in 0..steps {
-            let e = (tr.x[t] - d.truth[t]).abs();
+            let e = (tr.x[t] - truth[t]).abs();
             let s = two_sigma(tr.var[t]);
             bound = bound.max(if e.is_finite() { e } else { 0.0 });
             bound = bound.max(if s.is_finite() { s } else { 0.0 });
@@ -606,7 +666,7 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
             ),
         ));
     }
-    legend.push(lost_entry(d));
+    legend.extend(lost_entry(d));
     let axis = with_strip(-bound, bound)?;
     let mut ch = chart(
         area,
@@ -629,21 +689,84 @@ fn error_panel(area: &Area, d: &SeriesData) -> Result<()> {
         TRUTH.stroke_width(1),
     )))?;
     for (tr, c) in &tracks {
-        ch.draw_series(line((0..steps).map(|t| tr.x[t] - d.truth[t]), *c))?;
+        ch.draw_series(line((0..steps).map(|t| tr.x[t] - truth[t]), *c))?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    ch.draw_series(lost_ticks(Some(gamma), axis.strip.0, axis.strip.1))?;
+    Ok(())
+}
+
+/// Without a truth: the NIS of subsystem `i`'s measurement at each step (docs/theory.md
+/// §14), with the 95 % band of `χ²_q` where the number `q` of measured elements is known
+/// (the band is exact with known dropouts and close with unknown ones).
+fn nis_panel(area: &Area, d: &SeriesData, nis: &[f64]) -> Result<()> {
+    let steps = d.steps;
+    let band = d.nis_q.and_then(|q| {
+        let chi2 = ChiSquared::new(q as f64).ok()?;
+        Some((q as f64, chi2.inverse_cdf(0.025), chi2.inverse_cdf(0.975)))
+    });
+    let finite: Vec<(usize, f64)> = (nis.iter().copied().enumerate())
+        .filter(|(_, v)| v.is_finite())
+        .collect();
+    let mut range = extent(finite.iter().map(|(_, v)| v));
+    range.0 = range.0.min(0.0);
+    let mut legend = vec![(
+        Swatch::Dot(ESTIMATE),
+        format!(
+            "NIS of y at each step ({} steps without a reading)",
+            steps - finite.len()
+        ),
+    )];
+    if let Some((q, low, high)) = band {
+        range = union(range, (low, high));
+        let inside = finite
+            .iter()
+            .filter(|(_, v)| low <= *v && *v <= high)
+            .count();
+        legend.push((
+            Swatch::LineBand(GREY),
+            format!(
+                "95 % band of a model that fits, χ²_{q:.0}: {:.1} % inside; mean {q:.0}",
+                100.0 * inside as f64 / finite.len().max(1) as f64
+            ),
+        ));
+    }
+    let axis = with_strip(range.0, range.1)?;
+    let mut ch = chart(
+        area,
+        "Normalised innovation squared: each measurement against what the model predicted",
+        &legend,
+        steps,
+        &axis,
+        "NIS",
+    )?;
+    if let Some((q, low, high)) = band {
+        let edge = steps as f64 + 1.0;
+        ch.draw_series(std::iter::once(Polygon::new(
+            vec![(0.0, low), (edge, low), (edge, high), (0.0, high)],
+            GREY.mix(0.22).filled(),
+        )))?;
+        ch.draw_series(std::iter::once(PathElement::new(
+            vec![(0.0, q), (edge, q)],
+            GREY.stroke_width(1),
+        )))?;
+    }
+    ch.draw_series(
+        finite
+            .iter()
+            .map(|&(t, v)| Circle::new(((t + 1) as f64, v), 2, ESTIMATE.filled())),
+    )?;
     Ok(())
 }
 
 fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
-    let steps = d.truth.len();
+    let steps = d.steps;
     let range = extent(m.y.iter());
     let color = |r: usize| palette(r + 2);
     let rows: Vec<_> = (0..m.q)
         .map(|r| (color(r), format!("y{}", r + 1)))
         .collect();
     let mut legend = measurement_legend(d, &rows);
-    legend.push(lost_entry(d));
+    legend.extend(lost_entry(d));
     legend.push((
         Swatch::None,
         format!("Not drawn over x{}: {}.", d.state, m.why_separate),
@@ -663,7 +786,7 @@ fn meas_panel(area: &Area, d: &SeriesData, m: &Measured) -> Result<()> {
     for r in 0..m.q {
         draw_measurements(&mut ch, d, m, r, color(r))?;
     }
-    ch.draw_series(lost_ticks(&d.gamma, axis.strip.0, axis.strip.1))?;
+    ch.draw_series(lost_ticks(d.gamma.as_deref(), axis.strip.0, axis.strip.1))?;
     Ok(())
 }
 
@@ -680,9 +803,14 @@ fn measurement_color(d: &SeriesData, t: usize, arrived: RGBColor) -> RGBColor {
         Some(pi) if pi <= 0.1 => SET_ASIDE,
         Some(pi) if pi < 0.9 => WEIGHED,
         Some(_) => MEASURED,
-        None if d.gamma[t] => arrived,
+        None if arrived_at(d, t) => arrived,
         None => GREY,
     }
+}
+
+/// Whether the measurement of step `t` (0-based) arrived; without a truth, taken as arrived.
+fn arrived_at(d: &SeriesData, t: usize) -> bool {
+    d.gamma.as_ref().is_none_or(|g| g[t])
 }
 
 /// The legend of the measurement marks: each row of `y` drawn (its colour and name) for
@@ -694,7 +822,9 @@ fn measurement_legend(d: &SeriesData, rows: &[(RGBColor, String)]) -> Vec<(Swatc
             .iter()
             .map(|(c, name)| (Swatch::Dot(*c), name.clone()))
             .collect();
-        legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+        if d.gamma.is_some() {
+            legend.push((Swatch::Cross(GREY), "y when lost (noise only)".into()));
+        }
         return legend;
     };
     let names: Vec<&str> = rows.iter().map(|(_, name)| name.as_str()).collect();
@@ -703,11 +833,13 @@ fn measurement_legend(d: &SeriesData, rows: &[(RGBColor, String)]) -> Vec<(Swatc
             .filter(|&t| measurement_color(d, t, MEASURED) == class)
             .count()
     };
+    let shapes = if d.gamma.is_some() {
+        " (● arrived, × lost: noise only)"
+    } else {
+        ""
+    };
     vec![
-        (
-            Swatch::Dot(GREY),
-            format!("{} (● arrived, × lost: noise only)", names.join(", ")),
-        ),
+        (Swatch::Dot(GREY), format!("{}{shapes}", names.join(", "))),
         (
             Swatch::Block(MEASURED),
             format!("taken by the filter (π ≥ 0.9): {} steps", count(MEASURED)),
@@ -732,12 +864,12 @@ fn draw_measurements(
     r: usize,
     arrived: RGBColor,
 ) -> Result<()> {
-    let marks = (0..d.truth.len())
+    let marks = (0..d.steps)
         .map(|t| (t, m.y[t * m.q + r]))
         .filter(|(_, v)| v.is_finite());
     for (t, v) in marks {
         let (p, color) = (((t + 1) as f64, v), measurement_color(d, t, arrived));
-        if d.gamma[t] {
+        if arrived_at(d, t) {
             ch.draw_series(std::iter::once(Circle::new(p, 2, color.filled())))?;
         } else {
             ch.draw_series(std::iter::once(Cross::new(p, 3, color.stroke_width(1))))?;

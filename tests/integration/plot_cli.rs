@@ -1030,3 +1030,89 @@ fn heatmap_without_truth_maps_the_innovations_and_shows_a_faulty_sensor() {
         "{err}"
     );
 }
+
+/// Without `--truth`, `plot series` draws the estimate with its band and the measurements
+/// (coloured by `π` with the mixture update), and below, the NIS of each measurement with
+/// the `χ²_q` band (q from the measurements), from the estimates' `nis` column: the same
+/// figure from the CSV and the JSON of the joint filter. The share of NIS points inside the
+/// band in the legend is recomputed here from the `nis` column. Estimates without the column
+/// give the top panel alone, with a warning naming `estimate --nis`.
+#[test]
+fn series_without_truth_draws_the_innovations() {
+    let dir = fixture();
+    for out in ["platoon/joint_nis.csv", "platoon/joint_ni.json"] {
+        run_ok(
+            dir,
+            &[
+                "-q",
+                "estimate",
+                "--meas",
+                "platoon/measurements.csv",
+                "--filter",
+                "joint",
+                "--update",
+                "mixture",
+                "--nis",
+                "--out",
+                out,
+            ],
+        );
+    }
+    let args = |est: &'static str| {
+        vec![
+            "series",
+            "--estimates",
+            est,
+            "--meas",
+            "platoon/measurements.csv",
+            "--subsystem",
+            "4",
+            "--state",
+            "1",
+        ]
+    };
+    let csv = plot(&args("platoon/joint_nis.csv"), "series-nis-csv.svg");
+    let json = plot(&args("platoon/joint_ni.json"), "series-nis-json.svg");
+    assert!(csv.replace("joint_nis.csv", "E") == json.replace("joint_ni.json", "E"));
+    let texts = texts(&csv);
+    assert_has_part(
+        &texts,
+        "(no truth: the innovations tell how well the model fits)",
+    );
+    assert_has_part(&texts, "Normalised innovation squared");
+    assert!(!texts.iter().any(|t| t == "truth"), "{texts:#?}");
+    let est = Csv::read(&dir.join("platoon/joint_nis.csv"));
+    let nis = column(&est, "nis", 4);
+    // χ²₂: 0.0506 and 7.3778 (standard tables).
+    let inside = nis
+        .iter()
+        .filter(|&&v| (0.0506..=7.3778).contains(&v))
+        .count();
+    let share = format!("{:.1} % inside", 100.0 * inside as f64 / nis.len() as f64);
+    assert_has_part(&texts, &share);
+    assert_has_part(&texts, "95 % band of a model that fits, χ²_2");
+    // Estimates without the nis column: the top panel alone, and a warning.
+    let out = sisfilt()
+        .current_dir(dir)
+        .args([
+            "plot",
+            "series",
+            "--estimates",
+            "platoon/estimates.csv",
+            "--subsystem",
+            "4",
+        ])
+        .args(["--state", "1", "--out", "series-no-nis.svg"])
+        .assert()
+        .success();
+    let stderr = String::from_utf8(out.get_output().stderr.clone()).unwrap();
+    assert!(
+        stderr.contains("has no `nis` column") && stderr.contains("estimate --nis"),
+        "{stderr}"
+    );
+    let texts = self::texts(&std::fs::read_to_string(dir.join("series-no-nis.svg")).unwrap());
+    assert!(
+        !texts.iter().any(|t| t.contains("Normalised innovation")),
+        "{texts:#?}"
+    );
+}
