@@ -2,11 +2,9 @@
 //! NEES with its resolution floor; how well the mixture update detects lost measurements
 //! (docs/theory.md §10).
 
+use crate::innovations::{BandBasis, t_quantile};
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
 use serde::{Deserialize, Deserializer, Serialize};
-use statrs::distribution::{ContinuousCDF, StudentsT};
-
-use crate::innovations::BandBasis;
 
 /// Running sums over the scored `(t, i)` terms.
 #[derive(Debug, Clone)]
@@ -196,8 +194,7 @@ impl Accuracy {
         let r = self.runs as f64;
         let mean = self.run_sum / r;
         let variance = ((self.run_squares - r * mean * mean) / (r - 1.0)).max(0.0);
-        let t = StudentsT::new(0.0, 1.0, r - 1.0).map_or(f64::INFINITY, |d| d.inverse_cdf(0.975));
-        let half = t * (variance / r).sqrt();
+        let half = t_quantile(0.975, r - 1.0) * (variance / r).sqrt();
         ([(1.0 - half).max(0.0), 1.0 + half], BandBasis::Runs)
     }
 

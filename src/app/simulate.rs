@@ -75,7 +75,7 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             out_dir.display()
         ))
     })?;
-    let result = write_simulation(args, &src, &model, inputs);
+    let result = write_simulation(args, &src, &model, steps, inputs);
     if result.is_err() {
         for dir in &created {
             // Fails, and so keeps the folder, if anything else appeared in it meanwhile.
@@ -95,12 +95,13 @@ fn simulation_files(m: usize) -> impl Iterator<Item = &'static str> {
         .chain([RunRecord::FILE])
 }
 
-/// Simulates and writes the files of `simulate` into the existing folder `args.out`; each file
-/// appears (atomically) only once every file is complete.
+/// Simulates `steps` steps and writes the files of `simulate` into the existing folder
+/// `args.out`; each file appears (atomically) only once every file is complete.
 fn write_simulation(
     args: &SimulateArgs,
     src: &ConfigSource,
     model: &Model,
+    steps: usize,
     mut inputs: InputStream,
 ) -> Result<()> {
     let out_dir = &args.out;
@@ -126,7 +127,6 @@ fn write_simulation(
     let mut record_out = file(RunRecord::FILE)?;
 
     let mut y_row = vec![0.0; d.q];
-    let steps = model.horizon()?;
     simulate(model, steps, seed, &mut inputs, |step| {
         for i in 0..model.subsystems {
             let gamma = step.gamma[i];

@@ -20,7 +20,11 @@
 //! without changing sizes: a lost row gets `H_k = 0`, `ỹ_k = 0` and a unit row and column in
 //! `R_eff`, so it contributes nothing to `Σ⁻¹ H T` and exactly the observed-rows update remains.
 
-use nalgebra::{Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector};
+use nalgebra::allocator::Allocator;
+use nalgebra::{
+    Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector, DefaultAllocator, Dim, OMatrix,
+    OVector,
+};
 
 use crate::linalg::symmetrize;
 use crate::model::{Model, Params};
@@ -282,8 +286,12 @@ pub struct Arrival {
 /// `log 2π`.
 pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
-/// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L`; `v` is overwritten by `L⁻¹ v`.
-fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
+/// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L` (only its lower triangle is read),
+/// at any size; `v` is overwritten by `L⁻¹ v`.
+fn log_density<D: Dim>(l: &OMatrix<f64, D, D>, v: &mut OVector<f64, D>) -> f64
+where
+    DefaultAllocator: Allocator<D, D> + Allocator<D>,
+{
     let log_det: f64 = (0..l.nrows()).map(|k| 2.0 * l[(k, k)].ln()).sum();
     l.solve_lower_triangular_mut(v);
     -0.5 * (l.nrows() as f64 * LN_2PI + log_det + v.norm_squared())
@@ -292,7 +300,14 @@ fn log_density(l: &DMatrix<f64>, v: &mut DVector<f64>) -> f64 {
 /// [`log_density`] of a measurement model with `dropped` rows removed as
 /// [`Workspace::drop_row`] removes them: such a row is a unit variance with `v_k = 0`, which
 /// adds only `−½ log 2π`, taken back here.
-pub(crate) fn received_log_density(l: &DMatrix<f64>, v: &mut DVector<f64>, dropped: usize) -> f64 {
+pub(crate) fn received_log_density<D: Dim>(
+    l: &OMatrix<f64, D, D>,
+    v: &mut OVector<f64, D>,
+    dropped: usize,
+) -> f64
+where
+    DefaultAllocator: Allocator<D, D> + Allocator<D>,
+{
     log_density(l, v) + 0.5 * dropped as f64 * LN_2PI
 }
 

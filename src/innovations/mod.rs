@@ -35,6 +35,35 @@ const BAND_LEVEL: f64 = 0.05;
 const PARALLEL_MIN: usize = 4096;
 const CHUNK: usize = 256;
 
+/// The sums `Σ (NIS − q_r)` over blocks of [`BLOCK_STEPS`] steps: the current block's, and
+/// the count, sum and sum of squares of the finished ones.
+#[derive(Debug, Clone, Default)]
+struct Blocks {
+    current: f64,
+    count: u64,
+    sum: f64,
+    squares: f64,
+}
+
+impl Blocks {
+    fn end(&mut self) {
+        self.count += 1;
+        self.sum += self.current;
+        self.squares += self.current * self.current;
+        self.current = 0.0;
+    }
+
+    /// The standard deviation of the whole run's sum, from the spread of the finished blocks
+    /// (at least two): `√(s_B² T / 25)`.
+    fn sd_of_total(&self, steps: usize) -> Option<f64> {
+        (self.count >= 2).then(|| {
+            let nb = self.count as f64;
+            let s2 = (self.squares - self.sum * self.sum / nb) / (nb - 1.0);
+            (s2.max(0.0) * steps as f64 / BLOCK_STEPS as f64).sqrt()
+        })
+    }
+}
+
 /// Running sums of the NIS terms of one subsystem or of the chain.
 #[derive(Debug, Clone, Default)]
 struct Tally {
@@ -42,12 +71,7 @@ struct Tally {
     nis: f64,
     received: f64,
     variance: f64,
-    /// `Σ (NIS − q_r)` of the current block, and the sums of the finished blocks' sums and
-    /// squares.
-    block: f64,
-    blocks: u64,
-    block_sum: f64,
-    block_squares: f64,
+    blocks: Blocks,
     /// `Σ π`, `Σ p` and `Σ p (1 − p)` over the terms with unknown dropouts.
     arrival: f64,
     p: f64,
@@ -56,11 +80,23 @@ struct Tally {
 }
 
 impl Tally {
-    fn end_block(&mut self) {
-        self.blocks += 1;
-        self.block_sum += self.block;
-        self.block_squares += self.block * self.block;
-        self.block = 0.0;
+    /// The chain's tally: the subsystems' sums, with the chain's own `blocks` (the spread of
+    /// a sum is not the sum of the spreads).
+    fn chain(subsystems: &[Tally], blocks: &Blocks) -> Self {
+        let mut chain = Tally {
+            blocks: blocks.clone(),
+            ..Tally::default()
+        };
+        for s in subsystems {
+            chain.nis += s.nis;
+            chain.received += s.received;
+            chain.variance += s.variance;
+            chain.arrival += s.arrival;
+            chain.p += s.p;
+            chain.p_variance += s.p_variance;
+            chain.arrival_terms += s.arrival_terms;
+        }
+        chain
     }
 }
 
@@ -212,7 +248,7 @@ impl Worker {
             tally.nis += term.nis;
             tally.received += term.received as f64;
             tally.variance += term.variance;
-            tally.block += excess;
+            tally.blocks.current += excess;
             self.block += excess;
             if let Some(pi) = term.arrival {
                 tally.arrival += pi;
@@ -237,7 +273,8 @@ pub struct InnovationCheck {
     /// One per chunk of [`CHUNK`] subsystems (one in all on a short chain).
     workers: Vec<Worker>,
     nis: Vec<f64>,
-    chain: Tally,
+    /// The chain's block sums (its other sums are the subsystems', added up in the report).
+    chain: Blocks,
     subsystems: Vec<Tally>,
     series: Vec<Series>,
     steps: usize,
@@ -265,7 +302,7 @@ impl InnovationCheck {
                 })
                 .collect(),
             nis: vec![f64::NAN; big_n],
-            chain: Tally::default(),
+            chain: Blocks::default(),
             subsystems: vec![Tally::default(); big_n],
             series: vec![Series::default(); big_n * q],
             steps: 0,
@@ -322,14 +359,14 @@ impl InnovationCheck {
                 msg: "the predicted covariance of the measurement is not positive definite (innovation check)".into(),
             });
         }
-        self.chain.block += self
+        self.chain.current += self
             .workers
             .iter_mut()
             .map(|w| std::mem::take(&mut w.block))
             .sum::<f64>();
         if t.is_multiple_of(BLOCK_STEPS) {
-            self.chain.end_block();
-            self.subsystems.iter_mut().for_each(Tally::end_block);
+            self.chain.end();
+            self.subsystems.iter_mut().for_each(|s| s.blocks.end());
         }
         self.steps = t;
         Ok(())
@@ -351,24 +388,11 @@ impl InnovationCheck {
         let tests = 3 + usize::from(unknown);
         let level = FAMILY_LEVEL / tests as f64;
         // Every tally has finished the same blocks.
-        let blocks = self.chain.blocks;
+        let blocks = self.chain.count;
         let shown = Critical::at(BAND_LEVEL, blocks);
         let at_level = Critical::at(level, blocks);
         let subsystem_level = Critical::at(level / big_n as f64, blocks);
-        let mut chain = self.chain.clone();
-        for s in &self.subsystems {
-            for (sum, part) in [
-                (&mut chain.nis, s.nis),
-                (&mut chain.received, s.received),
-                (&mut chain.variance, s.variance),
-                (&mut chain.arrival, s.arrival),
-                (&mut chain.p, s.p),
-                (&mut chain.p_variance, s.p_variance),
-            ] {
-                *sum += part;
-            }
-            chain.arrival_terms += s.arrival_terms;
-        }
+        let chain = Tally::chain(&self.subsystems, &self.chain);
         let subsystem_nis: Vec<NisFigures> = self
             .subsystems
             .iter()
@@ -472,11 +496,7 @@ impl NisFigures {
         }
         let average = tally.nis / tally.received;
         let independent = tally.variance.sqrt();
-        let blocks = (tally.blocks >= 2).then(|| {
-            let nb = tally.blocks as f64;
-            let s2 = (tally.block_squares - tally.block_sum * tally.block_sum / nb) / (nb - 1.0);
-            (s2.max(0.0) * steps as f64 / BLOCK_STEPS as f64).sqrt()
-        });
+        let blocks = tally.blocks.sd_of_total(steps);
         let half_width = |critical: Critical| {
             let by_terms = critical.z * independent;
             let by_blocks = blocks.map_or(0.0, |sd| critical.t * sd);
@@ -795,13 +815,16 @@ struct Critical {
 impl Critical {
     fn at(level: f64, blocks: u64) -> Self {
         let p = 1.0 - level / 2.0;
-        let t = StudentsT::new(0.0, 1.0, blocks as f64 - 1.0)
-            .map_or(f64::INFINITY, |d| d.inverse_cdf(p));
         Self {
             z: Normal::standard().inverse_cdf(p),
-            t,
+            t: t_quantile(p, blocks as f64 - 1.0),
         }
     }
+}
+
+/// The `p`-quantile of Student's t with `dof` degrees of freedom (infinite without any).
+pub(crate) fn t_quantile(p: f64, dof: f64) -> f64 {
+    StudentsT::new(0.0, 1.0, dof).map_or(f64::INFINITY, |d| d.inverse_cdf(p))
 }
 
 fn chi_squared_sf(x: f64, dof: f64) -> f64 {

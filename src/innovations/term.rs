@@ -11,7 +11,7 @@ use nalgebra::{
     Cholesky, Const, DefaultAllocator, Dim, Dyn, MatrixView, OMatrix, OVector, U1, VectorView,
 };
 
-use crate::filter::nahi::{Arrival, LN_2PI};
+use crate::filter::nahi::{Arrival, received_log_density};
 use crate::model::Params;
 
 /// Which predictive distribution a term is scored against (docs/theory.md §14).
@@ -221,18 +221,6 @@ enum Of {
     Matrix,
 }
 
-/// `log N(v; 0, L Lᵀ)` from the lower factor `L` over the rows in the data (`dropped` unit
-/// rows with `v_k = 0` add nothing); `v` is overwritten by `L⁻¹ v`.
-fn log_density<Q: Dim>(l: &OMatrix<f64, Q, Q>, v: &mut OVector<f64, Q>, received: usize) -> f64
-where
-    DefaultAllocator: Allocator<Q, Q> + Allocator<Q>,
-{
-    // One logarithm of the product: q is small, so it cannot overflow.
-    let log_det = 2.0 * (0..v.len()).map(|k| l[(k, k)]).product::<f64>().ln();
-    l.solve_lower_triangular_mut(v);
-    -0.5 * (received as f64 * LN_2PI + log_det + v.norm_squared())
-}
-
 impl<N: Dim, Q: Dim> TermScorer for TermWorkspace<N, Q>
 where
     DefaultAllocator: Allocator<Q, N> + Allocator<N, Q> + Allocator<Q, Q> + Allocator<Q>,
@@ -289,14 +277,14 @@ where
         }
         let l1 = self.factor(0, Of::S1)?;
         self.w.copy_from(&self.e);
-        let ell1 = log_density(l1.l_dirty(), &mut self.w, received);
+        let ell1 = received_log_density(l1.l_dirty(), &mut self.w, q.value() - received);
         self.give_back(0, l1);
         let arrival = if kind == TermKind::Gaussian {
             None
         } else {
             let l0 = self.factor(1, Of::M)?;
             self.w0.copy_from(&self.e0);
-            let ell0 = log_density(l0.l_dirty(), &mut self.w0, received);
+            let ell0 = received_log_density(l0.l_dirty(), &mut self.w0, q.value() - received);
             self.give_back(1, l0);
             Some(Arrival::weigh(p, ell0, ell1).probability)
         };

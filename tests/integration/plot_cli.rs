@@ -296,29 +296,24 @@ fn series_reads_the_json_estimates_like_the_csv() {
     );
 }
 
+/// The joint filter with the mixture update (and `extra` options) on the measurements of the
+/// fixture's `run`, written to each of `outs` (a CSV and a JSON file).
+fn joint_mixture_estimates(run: &str, extra: &[&str], outs: [&str; 2]) {
+    let meas = format!("{run}/measurements.csv");
+    for out in outs {
+        let mut args = vec!["-q", "estimate", "--meas", &meas, "--filter", "joint"];
+        args.extend_from_slice(&["--update", "mixture", "--out", out]);
+        args.extend_from_slice(extra);
+        run_ok(fixture(), &args);
+    }
+}
+
 /// Estimates of the joint filter with the mixture update carry cross-covariance columns (in
 /// JSON) and a last column `arrival`: the figures read them, and draw the same from the CSV
 /// and the JSON.
 #[test]
 fn plots_read_the_joint_mixture_estimates() {
-    let dir = fixture();
-    for out in ["paper/mixture.csv", "paper/mixtur.json"] {
-        run_ok(
-            dir,
-            &[
-                "-q",
-                "estimate",
-                "--meas",
-                "paper/measurements.csv",
-                "--filter",
-                "joint",
-                "--update",
-                "mixture",
-                "--out",
-                out,
-            ],
-        );
-    }
+    joint_mixture_estimates("paper", &[], ["paper/mixture.csv", "paper/mixtur.json"]);
     for figure in ["series", "heatmap"] {
         let args = |est: &'static str| {
             let mut args = vec![figure, "--estimates", est, "--truth", "paper/truth.csv"];
@@ -1040,24 +1035,11 @@ fn heatmap_without_truth_maps_the_innovations_and_shows_a_faulty_sensor() {
 #[test]
 fn series_without_truth_draws_the_innovations() {
     let dir = fixture();
-    for out in ["platoon/joint_nis.csv", "platoon/joint_ni.json"] {
-        run_ok(
-            dir,
-            &[
-                "-q",
-                "estimate",
-                "--meas",
-                "platoon/measurements.csv",
-                "--filter",
-                "joint",
-                "--update",
-                "mixture",
-                "--nis",
-                "--out",
-                out,
-            ],
-        );
-    }
+    joint_mixture_estimates(
+        "platoon",
+        &["--nis"],
+        ["platoon/joint_nis.csv", "platoon/joint_ni.json"],
+    );
     let args = |est: &'static str| {
         vec![
             "series",
