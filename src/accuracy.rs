@@ -292,8 +292,12 @@ pub struct DetectionReport {
 }
 
 impl Detection {
-    /// Scores one `π` against the true `γ` (0 or 1).
+    /// Scores one `π` against the true `γ` (0 or 1); a `π` of NaN (no row in the data,
+    /// docs/theory.md §15: nothing to detect) is not scored.
     pub fn add(&mut self, arrival: f64, gamma: f64) {
+        if arrival.is_nan() {
+            return;
+        }
         self.abs_error_sum += (arrival - gamma).abs();
         let flagged = arrival < 0.5;
         if gamma == 0.0 {

@@ -316,7 +316,7 @@ fn steps_after_the_first_allocate_nothing() {
             csv += &format!("{t},{i},{}\n", (t * i) as f64 * 0.001 - 0.3);
         }
     }
-    let layout = StepLayout::measurements(1, false);
+    let layout = StepLayout::measurements(1);
     let x: Vec<f64> = (0..big_n * 2).map(|k| k as f64 / 3.0).collect();
     let p: Vec<f64> = (0..big_n * 4).map(|k| k as f64 / 7.0).collect();
     for threads in [1, 2] {

@@ -59,8 +59,9 @@ pub struct EstimateArgs {
     /// Estimate fed to step 1 [default: filtered; predicted with --paper].
     #[arg(long, value_parser = choice::<InterconnectFrom>())]
     pub interconnect_from: Option<InterconnectFrom>,
-    /// unknown: lost measurements look like noise (the paper's model); known: lost elements
-    /// are empty cells and are skipped.
+    /// unknown: lost measurements look like noise (the paper's model), and an empty cell is a
+    /// gap, a value not in the data; known: lost elements are empty cells. Either way empty
+    /// cells are skipped.
     #[arg(long, value_parser = choice::<Dropouts>(), default_value = "unknown")]
     pub dropouts: Dropouts,
     /// How a measurement updates the estimate: linear is the paper's Nahi update; mixture
@@ -217,11 +218,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     }
     check_files(&read, &[Role::new("--out", &args.out)])?;
     let inputs = InputStream::open(&model, inputs_file.as_deref())?;
-    let meas = open_csv(
-        &args.meas,
-        StepLayout::measurements(d.q, spec.dropouts() == Dropouts::Known),
-        big_n,
-    )?;
+    let meas = open_csv(&args.meas, StepLayout::measurements(d.q), big_n)?;
     let truth = args
         .truth
         .as_ref()

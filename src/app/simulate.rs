@@ -113,7 +113,7 @@ fn write_simulation(
         .map_err(io_err("truth.csv"))?;
     let mut meas = CsvWriter::new(
         file("measurements.csv")?,
-        &StepLayout::measurements(d.q, false).header(),
+        &StepLayout::measurements(d.q).header(),
     )
     .map_err(io_err("measurements.csv"))?;
     let mut inputs_out = if d.m > 0 {

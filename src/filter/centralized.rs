@@ -221,13 +221,7 @@ impl CentralizedFilter {
                 );
             }
         }
-        if self.known {
-            for k in 0..big_n * q {
-                if y[k].is_nan() {
-                    self.ws.drop_row(k);
-                }
-            }
-        }
+        self.ws.drop_missing_rows(y);
         let log_density = nahi::kalman_update(
             &self.x_pred,
             &self.t_pred,
@@ -410,6 +404,7 @@ impl ChainFilter for ScheduledCentralized<'_> {
                 "the centralized schedule ends before t = {t}"
             )));
         }
+        super::refuse_gaps(y, t, "the centralized filter's schedule")?;
         nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
         let size = big_n * n;
         let w = &self.sched.gains[k];

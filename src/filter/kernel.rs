@@ -12,7 +12,7 @@ use crate::model::{Model, Params};
 
 /// The local data of one update.
 pub struct LocalData<'a> {
-    /// `y(t,i)`; NaN marks a lost element in the known-dropout mode.
+    /// `y(t,i)`; NaN marks an element not in the data (docs/theory.md §15).
     pub y: &'a [f64],
     /// `R u(t,i)`.
     pub ru: &'a [f64],
@@ -368,7 +368,8 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
     ) -> Option<f64> {
         let prm = &self.sets[set as usize];
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
-        if !data.known {
+        let complete = !data.y.iter().any(|v| v.is_nan());
+        if !data.known && complete {
             let h = prm.j * data.p;
             let reff = Self::reff(prm, data.p, s);
             let (l, pf, _) = Self::gain(&h, &reff, &t)?;
@@ -376,22 +377,22 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
             p_filt.copy_from_slice(pf.as_slice());
             return Some(0.0);
         }
-        // Known dropouts: a lost row gets H_k = 0, ỹ_k = 0 and a unit row and column in
-        // R_eff, so it contributes nothing (see nahi).
+        // A row not in the data gets H_k = 0, ỹ_k = 0 and a unit row and column in R_eff,
+        // so it contributes nothing (nahi::remove_row).
         let mut h = prm.j * data.p;
-        let mut reff = prm.m;
+        let mut reff = if data.known {
+            prm.m
+        } else {
+            Self::reff(prm, data.p, s)
+        };
         let x = SVector::<f64, N>::from_column_slice(x_pred);
         let mut innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
         let mut dropped = 0;
-        for k in 0..Q {
-            if data.y[k].is_nan() {
-                h.row_mut(k).fill(0.0);
-                reff.row_mut(k).fill(0.0);
-                reff.column_mut(k).fill(0.0);
-                reff[(k, k)] = 1.0;
-                innov[k] = 0.0;
-                dropped += 1;
-            }
+        for k in nahi::missing_rows(data.y) {
+            h.row_mut(k).fill(0.0);
+            nahi::remove_row(&mut reff, k);
+            innov[k] = 0.0;
+            dropped += 1;
         }
         let (l, pf, chol) = Self::gain(&h, &reff, &t)?;
         let xf = x + l * innov;
@@ -436,12 +437,31 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let prm = &self.sets[set as usize];
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
         let x = SVector::<f64, N>::from_column_slice(x_pred);
-        let e0 = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
-        let e = e0 - prm.j * x;
-        let jt = prm.j * t;
-        let s1 = (jt * prm.j_tr + prm.m).cholesky()?;
-        let ell0 = log_gaussian(prm.m_factor.as_ref()?, &e0)?;
-        let ell1 = log_gaussian(s1.l_dirty(), &e)?;
+        let mut e0 = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
+        let (mut j, mut m, mut m_factor) = (prm.j, prm.m, prm.m_factor);
+        let mut dropped = 0;
+        if data.y.iter().any(|v| v.is_nan()) {
+            // Only the received rows (docs/theory.md §15), removed as nahi::mixture_weights
+            // removes them; with none the subsystem is only predicted.
+            if data.y.iter().all(|v| v.is_nan()) {
+                x_filt.copy_from_slice(x_pred);
+                p_filt.copy_from_slice(t_pred);
+                return Some(nahi::Arrival::NONE_RECEIVED);
+            }
+            for k in nahi::missing_rows(data.y) {
+                j.row_mut(k).fill(0.0);
+                nahi::remove_row(&mut m, k);
+                e0[k] = 0.0;
+                dropped += 1;
+            }
+            m_factor = m.cholesky().map(|c| c.unpack());
+        }
+        let e = e0 - j * x;
+        let jt = j * t;
+        let s1 = (jt * j.transpose() + m).cholesky()?;
+        let correction = 0.5 * dropped as f64 * nahi::LN_2PI;
+        let ell0 = log_gaussian(m_factor.as_ref()?, &e0)? + correction;
+        let ell1 = log_gaussian(s1.l_dirty(), &e)? + correction;
         let arrival = nahi::Arrival::weigh(data.p, ell0, ell1);
         let pi = arrival.probability;
         // Kᵀ = S₁⁻¹ J T and g = K e, as in nahi::mixture_update.

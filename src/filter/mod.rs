@@ -24,8 +24,8 @@ use crate::error::{Error, Result};
 /// its state, so it can move to another thread (a scheduler's worker, another language's
 /// object).
 pub trait ChainFilter: Send {
-    /// Processes the next time step: `y(t, ·)` (`N·q` values; NaN marks a lost element in the
-    /// known-dropout mode) and `u(t, ·)` (`N·m` values).
+    /// Processes the next time step: `y(t, ·)` (`N·q` values; NaN marks an element not in the
+    /// data, docs/theory.md §15) and `u(t, ·)` (`N·m` values).
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()>;
     /// `x̂(t|t)` (`N·n`) and the diagonal blocks of `P(t|t)` (`N·n²`, column-major blocks).
     fn filtered(&self) -> (&[f64], &[f64]);
@@ -69,6 +69,18 @@ pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
     let msg = || "the estimate x̂ or its covariance P is no longer finite (overflow)".to_string();
     Error::check_finite(t, n, x, msg)?;
     Error::check_finite(t, n * n, p, msg)
+}
+
+/// A covariance pass stored once and replayed (`evaluate`'s schedules) holds the gains of
+/// complete measurements: a step with a row not in the data (docs/theory.md §15) needs its
+/// own, so `what` refuses it.
+pub(crate) fn refuse_gaps(y: &[f64], t: usize, what: &str) -> Result<()> {
+    match y.iter().position(|v| v.is_nan()) {
+        Some(_) => Err(Error::Usage(format!(
+            "{what} was computed for measurements without gaps, and t = {t} has one; run the filter itself"
+        ))),
+        None => Ok(()),
+    }
 }
 
 /// The filters `estimate` can run (the meaning of each in [`Choice::VARIANTS`]).

@@ -16,14 +16,16 @@
 //! `T⁺ = (A − pKJ) T (A − pKJ)ᵀ + K R_eff Kᵀ + Q`, since `A − pKJ = A (I − L H)`.
 //! `Σ⁻¹` is never formed: `Σ⁻¹ H T` comes from a Cholesky solve.
 //!
-//! In the known-dropout mode `p = 1` and the lost rows are removed, which is done here
-//! without changing sizes: a lost row gets `H_k = 0`, `ỹ_k = 0` and a unit row and column in
-//! `R_eff`, so it contributes nothing to `Σ⁻¹ H T` and exactly the observed-rows update remains.
+//! A row of `y` that is not in the data (NaN: a gap, or a lost element in the known-dropout
+//! mode, docs/theory.md §5 and §15) is removed without changing sizes: it gets `H_k = 0`,
+//! `ỹ_k = 0` and a unit row and column in `R_eff` (`remove_row`), so it contributes nothing
+//! to `Σ⁻¹ H T` and exactly the update on the received rows remains; with no row received the
+//! subsystem is only predicted.
 
 use nalgebra::allocator::Allocator;
 use nalgebra::{
-    Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector, DefaultAllocator, Dim, OMatrix,
-    OVector,
+    Cholesky, DMatrix, DMatrixView, DMatrixViewMut, DVector, DefaultAllocator, Dim, Matrix,
+    OMatrix, OVector, StorageMut,
 };
 
 use crate::linalg::symmetrize;
@@ -31,7 +33,7 @@ use crate::model::{Model, Params};
 
 /// The innovation of one subsystem, `ỹ = y − R u − p J x̂` (`H = p J`), written into `out`
 /// (`q` values) from `y` (`q`), `u` (`m`) and the prediction `x̂` (`n`); an element lost in
-/// the known-dropout mode (NaN) stays NaN.
+/// the data (NaN) stays NaN.
 pub fn innovation(prm: &Params, p: f64, y: &[f64], u: &[f64], x_pred: &[f64], out: &mut [f64]) {
     for (k, o) in out.iter_mut().enumerate() {
         let mut acc = y[k];
@@ -137,14 +139,20 @@ impl Workspace {
     }
 
     /// Removes measurement row `k` from the model in the workspace: `H_k = 0`, `ỹ_k = 0` and
-    /// a unit row and column in `R_eff`, so the row contributes nothing to the update.
+    /// a unit row and column in `R_eff` (`remove_row`), so the row contributes nothing to
+    /// the update.
     pub fn drop_row(&mut self, k: usize) {
         self.h.row_mut(k).fill(0.0);
-        self.reff.row_mut(k).fill(0.0);
-        self.reff.column_mut(k).fill(0.0);
-        self.reff[(k, k)] = 1.0;
+        remove_row(&mut self.reff, k);
         self.innov[k] = 0.0;
         self.dropped += 1;
+    }
+
+    /// [`Workspace::drop_row`] for every row of `y` that is not in the data (NaN).
+    pub fn drop_missing_rows(&mut self, y: &[f64]) {
+        for k in missing_rows(y) {
+            self.drop_row(k);
+        }
     }
 
     /// The second-moment matrix `S` to fill before [`update`].
@@ -157,13 +165,14 @@ impl Workspace {
 pub struct Measurement<'a> {
     pub j: &'a DMatrix<f64>,
     pub m: &'a DMatrix<f64>,
-    /// `y(t,i)`; in the known-dropout mode a NaN element is a lost one.
+    /// `y(t,i)`; a NaN element is not in the data (a gap, or a lost element in the
+    /// known-dropout mode) and its row is left out.
     pub y: &'a [f64],
     /// `R u(t,i)`, already computed.
     pub ru: &'a [f64],
     /// Arrival probability used by the filter (1 in the known-dropout mode).
     pub p: f64,
-    /// True in the known-dropout mode: NaN elements of `y` are skipped.
+    /// True in the known-dropout mode: `R_eff = M`, with no term for the unknown arrival.
     pub known: bool,
 }
 
@@ -198,13 +207,7 @@ pub fn update(
         ws.innov[k] = meas.y[k] - meas.ru[k] - hx;
     }
     ws.dropped = 0;
-    if meas.known {
-        for k in 0..q {
-            if meas.y[k].is_nan() {
-                ws.drop_row(k);
-            }
-        }
-    }
+    ws.drop_missing_rows(meas.y);
     kalman_update(x_pred, t_pred, x_filt, p_filt, CovarianceForm::Joseph, ws)
 }
 
@@ -286,6 +289,26 @@ pub struct Arrival {
 /// `log 2π`.
 pub(crate) const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
+/// The rows of `y` that are not in the data (NaN; docs/theory.md §15).
+pub(crate) fn missing_rows(y: &[f64]) -> impl Iterator<Item = usize> + '_ {
+    y.iter()
+        .enumerate()
+        .filter_map(|(k, v)| v.is_nan().then_some(k))
+}
+
+/// Removes row `k` from a measurement covariance: a unit row and column, so that with a zero
+/// residual and a zero row of `H` the row adds nothing, and the Cholesky factor of the rest
+/// is that of the received rows alone (its log density gains only `−½ log 2π`, taken back by
+/// [`received_log_density`]).
+pub(crate) fn remove_row<D: Dim, S: StorageMut<f64, D, D>>(
+    cov: &mut Matrix<f64, D, D, S>,
+    k: usize,
+) {
+    cov.row_mut(k).fill(0.0);
+    cov.column_mut(k).fill(0.0);
+    cov[(k, k)] = 1.0;
+}
+
 /// `log N(v; 0, L Lᵀ)` from the lower Cholesky factor `L` (only its lower triangle is read),
 /// at any size; `v` is overwritten by `L⁻¹ v`.
 fn log_density<D: Dim>(l: &OMatrix<f64, D, D>, v: &mut OVector<f64, D>) -> f64
@@ -335,6 +358,11 @@ pub fn mixture_update(
     ws: &mut Workspace,
 ) -> Option<Arrival> {
     let (q, n) = ws.h.shape();
+    if meas.y.iter().all(|v| v.is_nan()) {
+        x_filt.copy_from_slice(x_pred);
+        p_filt.copy_from_slice(t_pred);
+        return Some(Arrival::NONE_RECEIVED);
+    }
     let arrival = mixture_weights(meas, x_pred, t_pred, ws)?;
     let pi = arrival.probability;
     // W = S₁⁻¹ J T = Kᵀ, and g = K e.
@@ -390,12 +418,25 @@ fn mixture_weights(
     let (q, n) = ws.h.shape();
     let p = meas.p;
     let t_mat = DMatrixView::from_slice(t_pred, n, n);
+    // `J` and `M` without the rows not in the data (docs/theory.md §15).
     ws.h.copy_from(meas.j);
+    ws.reff.copy_from(meas.m);
+    let mut dropped = 0;
+    for k in missing_rows(meas.y) {
+        ws.h.row_mut(k).fill(0.0);
+        remove_row(&mut ws.reff, k);
+        dropped += 1;
+    }
     ws.ht.gemm(1.0, &ws.h, &t_mat, 0.0);
     ws.h_tr.tr_copy_from(&ws.h);
-    ws.sigma.copy_from(meas.m);
+    ws.sigma.copy_from(&ws.reff);
     ws.sigma.gemm(1.0, &ws.ht, &ws.h_tr, 1.0);
     for k in 0..q {
+        if meas.y[k].is_nan() {
+            ws.noise[k] = 0.0;
+            ws.innov[k] = 0.0;
+            continue;
+        }
         ws.noise[k] = meas.y[k] - meas.ru[k];
         let mut jx = 0.0;
         for c in 0..n {
@@ -405,17 +446,23 @@ fn mixture_weights(
     }
     // ℓ₀ from the factor of M (in `reff`), overwriting e₀; ℓ₁ from the factor of S₁ (in
     // `sigma`) on a copy of e.
-    ws.reff.copy_from(meas.m);
     if !factor_in_place(&mut ws.reff) || !factor_in_place(&mut ws.sigma) {
         return None;
     }
-    let ell0 = log_density(&ws.reff, &mut ws.noise);
+    let ell0 = received_log_density(&ws.reff, &mut ws.noise, dropped);
     ws.noise.copy_from(&ws.innov);
-    let ell1 = log_density(&ws.sigma, &mut ws.noise);
+    let ell1 = received_log_density(&ws.sigma, &mut ws.noise, dropped);
     Some(Arrival::weigh(p, ell0, ell1))
 }
 
 impl Arrival {
+    /// A measurement with no row in the data (docs/theory.md §15): nothing to weigh, `π`
+    /// unknown (NaN, an empty cell), and a log density of 0.
+    pub const NONE_RECEIVED: Arrival = Arrival {
+        probability: f64::NAN,
+        loglik: 0.0,
+    };
+
     /// `π` and `log(p e^ℓ₁ + (1−p) e^ℓ₀)` from the log densities `ℓ₀` (pure noise) and `ℓ₁`
     /// (the state seen), in log space; `π = 0` when `p ≤ 0`, 1 when `p ≥ 1`.
     pub(crate) fn weigh(p: f64, ell0: f64, ell1: f64) -> Self {
@@ -462,6 +509,11 @@ pub fn mixture_pseudo_measurement(
     ws: &mut Workspace,
 ) -> Option<Arrival> {
     let q = ws.h.nrows();
+    if meas.y.iter().all(|v| v.is_nan()) {
+        w_out.fill(0.0);
+        r_out.fill(0.0);
+        return Some(Arrival::NONE_RECEIVED);
+    }
     let arrival = mixture_weights(meas, x_pred, sigma, ws)?;
     let pi = arrival.probability;
     // Jp = J Σ Jᵀ; u = S₁⁻¹ e (in `noise`) and δ = eᵀ u.
@@ -474,6 +526,9 @@ pub fn mixture_pseudo_measurement(
     ws.b.copy_from(&ws.jp);
     ws.b.scale_mut(1.0 - pi);
     ws.b += meas.m;
+    for k in missing_rows(meas.y) {
+        remove_row(&mut ws.b, k);
+    }
     if !factor_in_place(&mut ws.b) {
         return None;
     }
@@ -489,6 +544,11 @@ pub fn mixture_pseudo_measurement(
     let d = 1.0 + (1.0 - pi) * (eps - delta);
     w.ger(-pi * (1.0 - pi) / d, &ws.innov, &ws.innov, 1.0);
     symmetrize(&mut w);
+    // A removed row's unit variance gave it `W_kk = π`: it carries no information.
+    for k in missing_rows(meas.y) {
+        w.row_mut(k).fill(0.0);
+        w.column_mut(k).fill(0.0);
+    }
     // r = π (u + W Jp u).
     ws.jp_u.gemv(1.0, &ws.jp, &ws.noise, 0.0);
     let mut r = nalgebra::DVectorViewMut::from_slice(r_out, q);

@@ -17,7 +17,8 @@
 //!   has the same `A` and `Q` at every time (only the means `m` differ);
 //! - `paper` moment: `S⁺ = A S Aᵀ` is one matrix when `A` is the same everywhere; when also
 //!   `J`, `M`, `Q` and `p` are, the whole covariance recursion (`T`, the gain, `P(t|t)`) is,
-//!   and only the means are per subsystem.
+//!   and only the means are per subsystem — until a step has a gap (a row not in the data,
+//!   docs/theory.md §15), after which every subsystem keeps its own.
 
 use rayon::iter::Either;
 use rayon::prelude::*;
@@ -530,6 +531,11 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
         let parallel = big_n >= PARALLEL_MIN && rayon::current_num_threads() > 1;
         const NOT_PD: &str = "the innovation covariance Σ is not positive definite";
 
+        // A subsystem with a row not in the data has its own gain from now on
+        // (docs/theory.md §15): the covariances are no longer the same everywhere.
+        if self.sharing.gain && y.iter().any(|v| v.is_nan()) {
+            self.sharing.gain = false;
+        }
         // The shared covariance update, once for all subsystems.
         if self.sharing.gain {
             let ok = self.workers[0].kernel.covariance_update(

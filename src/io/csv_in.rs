@@ -22,15 +22,15 @@ pub struct StepLayout {
 }
 
 impl StepLayout {
-    /// The measurement file: `t,i,y1..yq`. An empty cell is a lost element, allowed only
-    /// with `lost_elements` (known dropouts).
-    pub fn measurements(q: usize, lost_elements: bool) -> Self {
+    /// The measurement file: `t,i,y1..yq`. An empty cell is an element not in the data (a
+    /// gap, or a lost element with known dropouts; docs/theory.md §15).
+    pub fn measurements(q: usize) -> Self {
         Self {
             prefix: "y",
             width: q,
             extra: &[],
-            allow_empty: lost_elements,
-            empty_hint: " (a lost measurement? pass --dropouts known to skip empty cells)",
+            allow_empty: true,
+            empty_hint: "",
         }
     }
 
@@ -98,7 +98,8 @@ pub struct StepReader<R: Read> {
     name: String,
     /// The exact header the file must have: `t`, `i`, then the value columns.
     header: Vec<String>,
-    allow_empty: bool,
+    /// The first column (of the row, `t` and `i` included) whose cells may be empty.
+    optional_from: usize,
     empty_hint: &'static str,
     subsystems: usize,
     /// The first indicator column (`gamma`, docs/theory.md §13: 0 or 1); the header's length if none.
@@ -116,19 +117,20 @@ impl<R: Read> StepReader<R> {
             name,
             source,
             layout.header(),
-            layout.allow_empty,
+            if layout.allow_empty { 0 } else { usize::MAX },
             layout.empty_hint,
             subsystems,
         )
     }
 
     /// Like [`StepReader::new`], for files whose value columns are not `prefix1..prefixW`
-    /// (the estimates file, docs/theory.md §13): `header` is the exact header, `t` and `i` first.
+    /// (the estimates file, docs/theory.md §13): `header` is the exact header, `t` and `i` first;
+    /// a cell of value column `optional_from` (0-based, after `t` and `i`) or later may be empty.
     pub fn with_header(
         name: &str,
         source: R,
         header: Vec<String>,
-        allow_empty: bool,
+        optional_from: usize,
         empty_hint: &'static str,
         subsystems: usize,
     ) -> Result<Self> {
@@ -146,7 +148,7 @@ impl<R: Read> StepReader<R> {
             name: name.to_string(),
             header,
             first_indicator,
-            allow_empty,
+            optional_from: optional_from.saturating_add(2),
             empty_hint,
             subsystems,
             reader,
@@ -323,7 +325,7 @@ impl<R: Read> StepReader<R> {
             ));
         };
         if text.is_empty() {
-            if self.allow_empty {
+            if col >= self.optional_from {
                 return Ok(f64::NAN);
             }
             return Err(self.err(

@@ -113,7 +113,7 @@ impl TruthFile {
     }
 }
 
-/// The measurement file: `t,i,y1..yq` (an empty cell, a lost element, reads as NaN).
+/// The measurement file: `t,i,y1..yq` (an empty cell, an element not in the data, reads as NaN).
 pub struct MeasurementFile {
     pub reader: CsvReader,
     pub q: usize,
@@ -122,7 +122,7 @@ pub struct MeasurementFile {
 
 impl MeasurementFile {
     pub fn open(path: &Path) -> Result<Self> {
-        let (reader, q, subsystems) = open_step_file(path, StepLayout::measurements(0, true))?;
+        let (reader, q, subsystems) = open_step_file(path, StepLayout::measurements(0))?;
         Ok(Self {
             reader,
             q,
@@ -206,7 +206,10 @@ impl EstimatesFile {
         }
         let (header, subsystems) = probe_csv(path)?;
         let columns = columns_of(&header)?;
-        let reader = StepReader::with_header(&name, open(path)?, header, false, "", subsystems)?;
+        // As in the JSON: estimates and covariances must be numbers; a cross-covariance
+        // block, `π` or the NIS may be missing (empty).
+        let own = columns.n + columns.n * (columns.n + 1) / 2;
+        let reader = StepReader::with_header(&name, open(path)?, header, own, "", subsystems)?;
         Ok(Self {
             source: EstimatesSource::Csv(Box::new(reader)),
             name,

@@ -413,24 +413,15 @@ impl EstimateSink for Collect {
     }
 }
 
-/// Refuses a measurement that is not a finite number, but for NaN, a lost element, with known
-/// dropouts (the rule of the measurement file, docs/theory.md §13).
-fn check_measurements(model: &Model, spec: &CheckedSpec, y: &[f64]) -> Result<()> {
-    let lost_allowed = spec.dropouts() == Dropouts::Known;
-    let bad = y
-        .iter()
-        .position(|v| !(v.is_finite() || lost_allowed && v.is_nan()));
-    let Some(k) = bad else {
+/// Refuses a measurement that is neither a finite number nor NaN (an element not in the
+/// data, docs/theory.md §15).
+fn check_measurements(model: &Model, y: &[f64]) -> Result<()> {
+    let Some(k) = y.iter().position(|v| v.is_infinite()) else {
         return Ok(());
     };
     let (q, big_n) = (model.dims.q, model.subsystems);
-    let hint = if y[k].is_nan() {
-        " (a lost element? dropouts = known skips NaN)"
-    } else {
-        ""
-    };
     Err(Error::Usage(format!(
-        "y: t = {}, i = {}, element {}: expected a finite number, found {}{hint}",
+        "y: t = {}, i = {}, element {}: expected a finite number or NaN (not in the data), found {}",
         k / (big_n * q) + 1,
         k / q % big_n + 1,
         k % q + 1,
@@ -441,8 +432,8 @@ fn check_measurements(model: &Model, spec: &CheckedSpec, y: &[f64]) -> Result<()
 /// Runs `spec` on `model` over measurements and inputs held in memory, the whole run into
 /// memory: [`stream`] from an [`ArraySource`] (and a [`SliceTruth`]) into arrays.
 ///
-/// `y` holds `T × N × q` values, step after step and subsystem after subsystem (NaN marks a
-/// lost element with known dropouts); `u` holds `T × N × m` (`None`: the model's own inputs);
+/// `y` holds `T × N × q` values, step after step and subsystem after subsystem (NaN marks an
+/// element not in the data, docs/theory.md §15); `u` holds `T × N × m` (`None`: the model's own inputs);
 /// `truth`, when given, `T × N × (n + 1)`: each subsystem's states, then `γ`.
 ///
 /// ```
@@ -486,7 +477,7 @@ pub fn estimate(
     u: Option<&[f64]>,
     truth: Option<&[f64]>,
 ) -> Result<Estimates> {
-    check_measurements(model, spec, y)?;
+    check_measurements(model, y)?;
     let mut source = ArraySource::new(model, y, u)?;
     let mut truth = truth.map(|t| SliceTruth::new(model, t)).transpose()?;
     let mut sink = Collect::default();

@@ -14,7 +14,7 @@ const PARALLEL_READ_MIN: usize = 512;
 
 /// The measurements and inputs of a run, one step at a time.
 pub trait StepSource {
-    /// Fills `y` (`N·q` values; NaN marks a lost element with known dropouts) and `u` (`N·m`)
+    /// Fills `y` (`N·q` values; NaN marks an element not in the data) and `u` (`N·m`)
     /// with the next step and returns its `t`, or `None` after the last step.
     fn next_step(&mut self, y: &mut [f64], u: &mut [f64]) -> Result<Option<usize>>;
     /// After the last step, `steps`: refuses a run of no step, and inputs that go on beyond

@@ -490,9 +490,9 @@ fn a_run_notes_name_settings() {
     assert!(quiet.notes.is_empty(), "{:?}", quiet.notes);
 }
 
-/// Measurements in memory follow the rule of the file: NaN marks a lost element with known
-/// dropouts only, and anything else that is not finite is refused naming `t`, `i` and the
-/// element.
+/// Measurements in memory follow the rule of the file: NaN marks an element not in the data
+/// (in both dropout modes), and anything else that is not finite is refused naming `t`, `i`
+/// and the element.
 #[test]
 fn measurements_in_memory_are_checked_as_the_file_is() {
     let model = shipped_model("platoon.toml");
@@ -500,13 +500,11 @@ fn measurements_in_memory_are_checked_as_the_file_is() {
     let mut y = run.y.concat();
     let q = model.dims.q;
     let (t, i) = (3, 7);
-    y[((t - 1) * model.subsystems + (i - 1)) * q] = f64::NAN;
+    let first = ((t - 1) * model.subsystems + (i - 1)) * q;
+    y[first..first + q].fill(f64::NAN);
     let unknown = RunSpec::default().check().unwrap();
-    let refused = estimate(&model, &unknown, &y, None, None).unwrap_err();
-    assert_eq!(
-        refused.to_string(),
-        "y: t = 3, i = 7, element 1: expected a finite number, found NaN (a lost element? dropouts = known skips NaN)"
-    );
+    let gapped = estimate(&model, &unknown, &y, None, None).unwrap();
+    assert!(gapped.nis[(t - 1) * model.subsystems + i - 1].is_nan());
     let known = RunSpec {
         dropouts: Dropouts::Known,
         ..RunSpec::default()
@@ -517,7 +515,7 @@ fn measurements_in_memory_are_checked_as_the_file_is() {
     assert!(
         refused
             .to_string()
-            .starts_with("y: t = 1, i = 1, element 1: expected a finite number, found inf"),
+            .starts_with("y: t = 1, i = 1, element 1: expected a finite number or NaN (not in the data), found inf"),
         "{refused}"
     );
 }

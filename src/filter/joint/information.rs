@@ -37,7 +37,7 @@ impl InfoWorkspace {
 
     /// Adds `Φ = Hᵀ R⁻¹ H` to `phi` (`n × n`) and writes `r = Hᵀ R⁻¹ ỹ`, with `H = p J`,
     /// `R = M + p(1−p) J S Jᵀ` (`S` in `self.s`, unknown dropouts) and `ỹ = y − R u − H x̂⁻`.
-    /// In the known-dropout mode (`p = 1`) a NaN element of `y` removes its row. Returns
+    /// A NaN element of `y` (not in the data, docs/theory.md §15) removes its row. Returns
     /// `log N(ỹ; 0, R)` over the rows kept, or `None` when `R` is not positive definite.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn add(
@@ -62,17 +62,11 @@ impl InfoWorkspace {
         }
         nahi::innovation(prm, p, y, u, x, self.innov.as_mut_slice());
         let mut dropped = 0;
-        if known {
-            for k in 0..q {
-                if y[k].is_nan() {
-                    dropped += 1;
-                    self.h.row_mut(k).fill(0.0);
-                    self.reff.row_mut(k).fill(0.0);
-                    self.reff.column_mut(k).fill(0.0);
-                    self.reff[(k, k)] = 1.0;
-                    self.innov[k] = 0.0;
-                }
-            }
+        for k in nahi::missing_rows(y) {
+            dropped += 1;
+            self.h.row_mut(k).fill(0.0);
+            nahi::remove_row(&mut self.reff, k);
+            self.innov[k] = 0.0;
         }
         // W = R⁻¹ H by a Cholesky solve (allocation-free: the factor reuses `reff`).
         self.w.copy_from(&self.h);

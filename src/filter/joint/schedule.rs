@@ -108,6 +108,7 @@ impl ChainFilter for ScheduledJoint<'_> {
                 "the joint filter's schedule ends before t = {t}"
             )));
         };
+        crate::filter::refuse_gaps(y, t, "the joint filter's schedule")?;
         nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
         for i in 0..model.subsystems {
             let w = &step.gains[i * q * n..(i + 1) * q * n];

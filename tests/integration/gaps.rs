@@ -1,0 +1,368 @@
+//! Gaps: values missing from the measurement file (docs/theory.md §15). A row not in the data
+//! is deleted from that step's measurement equation in both dropout modes, so every filter,
+//! update and smoother is checked against independent ways of deleting it: a model without
+//! that row, a model whose subsystem has `p = 0` where it has no row (nothing to update with),
+//! and a dense lifted Nahi filter written here that deletes the rows.
+
+use nalgebra::{DMatrix, DVector};
+use sisfilt::filter::{CentralizedFilter, ChainFilter, Dropouts, FilterKind, Update};
+use sisfilt::model::Model;
+use sisfilt::run::{Estimates, RunSpec, estimate};
+
+use crate::common::{Csv, model_from, shipped_config, simulate_run, sisfilt, write_file};
+use crate::reference_filters::{CHAIN, dense_lifted, dense_predict};
+
+/// [`CHAIN`] with every subsystem alike (one `p`, no override), so that the distributed
+/// filter with the paper's moment shares one gain (until a gap).
+fn homogeneous_chain() -> String {
+    let text = CHAIN.replace("p = [0.9, 0.6, 0.8, 0.7]", "p = 0.7");
+    text[..text.find("[[override]]").unwrap()].to_string()
+}
+
+/// The same model with only the first measured element: `J`, `M` and `R` lose row 2.
+fn first_row_only(text: &str) -> String {
+    text.replace("J = [[1.0, 0.0], [0.3, 1.0]]", "J = [[1.0, 0.0]]")
+        .replace("R = [[0.1], [0.0]]", "R = [[0.1]]")
+        .replace("M = [[0.2, 0.05], [0.05, 0.3]]", "M = [[0.2]]")
+}
+
+/// Every filter, update, dropout mode and smoothing that `estimate` runs.
+fn specs() -> Vec<RunSpec> {
+    let mut out = Vec::new();
+    for filter in [
+        FilterKind::Distributed,
+        FilterKind::Joint,
+        FilterKind::Centralized,
+    ] {
+        for (update, dropouts) in [
+            (Update::Linear, Dropouts::Unknown),
+            (Update::Mixture, Dropouts::Unknown),
+            (Update::Linear, Dropouts::Known),
+        ] {
+            for smooth in [false, true] {
+                let base = RunSpec {
+                    filter,
+                    update,
+                    dropouts,
+                    smooth,
+                    ..RunSpec::default()
+                };
+                if filter == FilterKind::Distributed && update == Update::Linear {
+                    // The paper's preset: the shared gain on the homogeneous chain.
+                    out.push(RunSpec {
+                        paper: true,
+                        ..base.clone()
+                    });
+                }
+                out.push(base);
+            }
+        }
+    }
+    out
+}
+
+fn run(model: &Model, spec: &RunSpec, y: &[f64], u: &[f64]) -> Estimates {
+    estimate(model, &spec.check().unwrap(), y, Some(u), None)
+        .unwrap_or_else(|e| panic!("{spec:?}: {e}"))
+}
+
+/// `a` and `b` agree to 1e−10 relative to the larger (or both are NaN).
+fn assert_values(a: &[f64], b: &[f64], what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    for (k, (x, y)) in a.iter().zip(b).enumerate() {
+        let close = (x - y).abs() <= 1e-10 * x.abs().max(y.abs()).max(1.0);
+        assert!(close || x.is_nan() && y.is_nan(), "{what}[{k}]: {x} vs {y}");
+    }
+}
+
+/// An element missing at every step is the model without that row: the same estimates,
+/// covariances, `π`, log-likelihood and NIS from every filter, update and smoother, in both
+/// dropout modes.
+#[test]
+fn an_element_missing_everywhere_equals_the_model_without_its_row() {
+    for text in [CHAIN.to_string(), homogeneous_chain()] {
+        let (full, reduced) = (model_from(&text), model_from(&first_row_only(&text)));
+        let sim = simulate_run(&full, 17);
+        let u: Vec<f64> = sim.u.concat();
+        let y_gap: Vec<f64> = sim
+            .y
+            .concat()
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| if k % 2 == 1 { f64::NAN } else { v })
+            .collect();
+        let y_reduced: Vec<f64> = y_gap.iter().copied().step_by(2).collect();
+        for spec in specs() {
+            let what = format!("{spec:?}");
+            let (a, b) = (
+                run(&full, &spec, &y_gap, &u),
+                run(&reduced, &spec, &y_reduced, &u),
+            );
+            assert_values(&a.x, &b.x, &format!("x of {what}"));
+            assert_values(&a.p, &b.p, &format!("P of {what}"));
+            assert_values(&a.nis, &b.nis, &format!("NIS of {what}"));
+            assert_eq!(a.arrival.is_some(), b.arrival.is_some(), "{what}");
+            if let (Some(pa), Some(pb)) = (&a.arrival, &b.arrival) {
+                assert_values(pa, pb, &format!("π of {what}"));
+            }
+            let (la, lb) = (a.report.summary.loglik, b.report.summary.loglik);
+            assert_eq!(la.is_some(), lb.is_some(), "{what}");
+            if let (Some(la), Some(lb)) = (la, lb) {
+                assert_values(&[la], &[lb], &format!("loglik of {what}"));
+            }
+        }
+    }
+}
+
+/// A subsystem with no row in the data is only predicted: the same estimates and covariances
+/// as a model whose arrival probability is 0 there (nothing arrives, so nothing updates), from
+/// every unknown-dropout filter, update and smoother; its `π` is unknown (NaN) and its NIS
+/// is not scored.
+#[test]
+fn a_subsystem_without_data_is_only_predicted() {
+    let text = homogeneous_chain();
+    let gapped = model_from(&text);
+    let silent = model_from(&format!(
+        "{text}\n[[override]]\nsubsystems = [3, 3]\nsteps = [8, 12]\np = 0.0\n"
+    ));
+    let sim = simulate_run(&gapped, 23);
+    let (q, big_n) = (2, 4);
+    let u: Vec<f64> = sim.u.concat();
+    let in_gap = |k: usize| (7..12).contains(&(k / (big_n * q))) && k / q % big_n == 2;
+    let y: Vec<f64> = sim.y.concat();
+    let y_gap: Vec<f64> = y
+        .iter()
+        .enumerate()
+        .map(|(k, &v)| if in_gap(k) { f64::NAN } else { v })
+        .collect();
+    for spec in specs()
+        .into_iter()
+        .filter(|s| s.dropouts == Dropouts::Unknown)
+    {
+        let what = format!("{spec:?}");
+        let (a, b) = (run(&gapped, &spec, &y_gap, &u), run(&silent, &spec, &y, &u));
+        assert_values(&a.x, &b.x, &format!("x of {what}"));
+        assert_values(&a.p, &b.p, &format!("P of {what}"));
+        for (cell, nis) in a.nis.iter().enumerate() {
+            assert_eq!(nis.is_nan(), in_gap(cell * q), "NIS of {what} at {cell}");
+        }
+        if let (Some(pa), Some(pb)) = (&a.arrival, &b.arrival) {
+            for (cell, (pa, pb)) in pa.iter().zip(pb).enumerate() {
+                if in_gap(cell * q) {
+                    assert!(pa.is_nan() && *pb == 0.0, "π of {what} at {cell}");
+                } else {
+                    assert_values(&[*pa], &[*pb], &format!("π of {what} at {cell}"));
+                }
+            }
+        }
+    }
+}
+
+/// The exact lifted moments `E[x xᵀ]`'s diagonal blocks at `t`, from the mean `m` and
+/// covariance `c` of the lifted state (dense, written here).
+fn second_moment_block(m: &DVector<f64>, c: &DMatrix<f64>, i: usize, n: usize) -> DMatrix<f64> {
+    let mi = m.rows(i * n, n);
+    c.view((i * n, i * n), (n, n)) + mi * mi.transpose()
+}
+
+/// The centralized filter with unknown dropouts on measurements whose gaps change from step
+/// to step (none, one element, a whole subsystem) equals Nahi's update of the dense lifted
+/// system built here on the received rows: `H = p_i J_r`, `R = M_rr + p_i (1 − p_i) J_r S_ii
+/// J_rᵀ` with the exact second moments, the rows not in the data deleted.
+#[test]
+fn centralized_nahi_filter_with_gaps_equals_the_dense_filter_on_the_received_rows() {
+    let model = model_from(CHAIN);
+    let sim = simulate_run(&model, 31);
+    let (n, q, big_n) = (2, 2, 4);
+    let size = big_n * n;
+    let mut cent = CentralizedFilter::new(&model, false, 100).unwrap();
+    let m0 = DVector::from_fn(size, |r, _| [1.0, -0.5][r % n]);
+    let mut p0 = DMatrix::zeros(size, size);
+    for i in 0..big_n {
+        p0.view_mut((i * n, i * n), (n, n))
+            .copy_from(&DMatrix::from_row_slice(2, 2, &[0.8, 0.1, 0.1, 0.6]));
+    }
+    let (mut x, mut p) = (m0.clone(), p0.clone());
+    let (mut mean, mut cov) = (m0, p0);
+    let mut gaps = 0;
+    for (t0, y) in sim.y.iter().enumerate() {
+        let t = t0 + 1;
+        let y: Vec<f64> = y
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                let gap = (t + k / q) % 6 == 0 || (k * 5 + t) % 4 == 0;
+                if gap { f64::NAN } else { v }
+            })
+            .collect();
+        gaps += y.iter().filter(|v| v.is_nan()).count();
+        let u = &sim.u[t0];
+        cent.step(&y, u).unwrap();
+        let obs: Vec<usize> = (0..y.len()).filter(|&k| !y[k].is_nan()).collect();
+        let prob = |k: usize| model.window(t).p[k / q];
+        let h = DMatrix::from_fn(obs.len(), size, |r, c| {
+            let k = obs[r];
+            if c / n == k / q {
+                prob(k) * model.params(t, k / q + 1).J[(k % q, c % n)]
+            } else {
+                0.0
+            }
+        });
+        let reff = DMatrix::from_fn(obs.len(), obs.len(), |r, c| {
+            let (a, b) = (obs[r], obs[c]);
+            if a / q != b / q {
+                return 0.0;
+            }
+            let i = a / q;
+            let prm = model.params(t, i + 1);
+            let s = second_moment_block(&mean, &cov, i, n);
+            let jsj = &prm.J * s * prm.J.transpose();
+            prm.M[(a % q, b % q)] + prob(a) * (1.0 - prob(a)) * jsj[(a % q, b % q)]
+        });
+        let innov = DVector::from_fn(obs.len(), |r, _| {
+            let k = obs[r];
+            y[k] - model.params(t, k / q + 1).R[(k % q, 0)] * u[k / q]
+        }) - &h * &x;
+        if !obs.is_empty() {
+            let sigma = &h * &p * h.transpose() + reff;
+            let gain = &p * h.transpose() * sigma.try_inverse().unwrap();
+            x = &x + &gain * innov;
+            p = (DMatrix::identity(size, size) - &gain * &h) * &p;
+        }
+        let (xf, pf) = cent.filtered();
+        for k in 0..size {
+            assert!(
+                (xf[k] - x[k]).abs() < 1e-10,
+                "t={t} x[{k}]: {} vs {}",
+                xf[k],
+                x[k]
+            );
+        }
+        for i in 0..big_n {
+            for c in 0..n {
+                for r in 0..n {
+                    let got = pf[i * n * n + c * n + r];
+                    assert!(
+                        (got - p[(i * n + r, i * n + c)]).abs() < 1e-10,
+                        "t={t} P_{i}"
+                    );
+                }
+            }
+        }
+        dense_predict(&model, t, u, &mut x, &mut p);
+        // The moments of the lifted state: X⁺ = A_eff X + U_eff U + Ω.
+        let (a_eff, u_eff) = dense_lifted(&model, t);
+        mean = &a_eff * &mean + &u_eff * DVector::from_column_slice(u);
+        let mut next = &a_eff * &cov * a_eff.transpose();
+        for i in 0..big_n {
+            let mut block = next.view_mut((i * n, i * n), (n, n));
+            block += &model.params(t, i + 1).Q;
+        }
+        cov = next;
+    }
+    assert!(gaps > 40, "the pattern deletes rows ({gaps})");
+}
+
+/// On the command line, the platoon's measurements with car 3 switched off for steps 5–9 and
+/// the radar of car 5 (element 1) missing throughout: `estimate` with unknown dropouts and the
+/// mixture update leaves `arrival` and `nis` empty where nothing was received, detection
+/// scores only the measurements that are there, and `plot` reads the estimates with their
+/// empty cells.
+#[test]
+fn gaps_on_the_command_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let config = shipped_config("platoon.toml");
+    sisfilt()
+        .args(["-q", "simulate"])
+        .arg(&config)
+        .args(["--steps", "12", "--out"])
+        .arg(dir)
+        .assert()
+        .success();
+    let text = std::fs::read_to_string(dir.join("measurements.csv")).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let silent = |t: usize, i: usize| i == 3 && (5..=9).contains(&t);
+    for line in lines.iter_mut().skip(1) {
+        let cells: Vec<&str> = line.split(',').collect();
+        let (t, i): (usize, usize) = (cells[0].parse().unwrap(), cells[1].parse().unwrap());
+        if silent(t, i) {
+            *line = format!("{t},{i},,");
+        } else if i == 5 {
+            *line = format!("{t},{i},,{}", cells[3]);
+        }
+    }
+    let meas = write_file(dir, "gaps.csv", &(lines.join("\n") + "\n"));
+    let estimates = dir.join("estimates.csv");
+    let out = sisfilt()
+        .args(["estimate", "--config"])
+        .arg(&config)
+        .arg("--meas")
+        .arg(&meas)
+        .arg("--inputs")
+        .arg(dir.join("inputs.csv"))
+        .arg("--truth")
+        .arg(dir.join("truth.csv"))
+        .args(["--filter", "joint", "--update", "mixture", "--nis", "--out"])
+        .arg(&estimates)
+        .assert()
+        .success()
+        .get_output()
+        .clone();
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    let rows = Csv::read(&estimates);
+    let (arrival, nis) = (rows.header.len() - 2, rows.header.len() - 1);
+    assert_eq!(rows.header[arrival], "arrival");
+    let mut received_gamma = (0, 0);
+    let truth = Csv::read(&dir.join("truth.csv"));
+    for (row, truth_row) in rows.rows.iter().zip(&truth.rows) {
+        let (t, i): (usize, usize) = (row[0].parse().unwrap(), row[1].parse().unwrap());
+        assert_eq!(
+            row[arrival].is_empty(),
+            silent(t, i),
+            "arrival at t={t} i={i}"
+        );
+        assert_eq!(row[nis].is_empty(), silent(t, i), "nis at t={t} i={i}");
+        assert!(row[2..arrival].iter().all(|c| !c.is_empty()));
+        if !silent(t, i) {
+            let gamma = truth_row.last().unwrap();
+            match gamma.as_str() {
+                "0" => received_gamma.0 += 1,
+                _ => received_gamma.1 += 1,
+            }
+        }
+    }
+    // Detection counts the scored measurements only: 12 · 20 − 5 of them.
+    let (lost, received) = received_gamma;
+    assert!(
+        stderr.contains(&format!("of {lost} lost measurements detected"))
+            && stderr.contains(&format!("among {received} received")),
+        "{stderr}"
+    );
+    assert_eq!(lost + received, 12 * 20 - 5);
+    let plot = |args: &[&str]| {
+        sisfilt()
+            .current_dir(dir)
+            .arg("plot")
+            .args(args)
+            .arg("--estimates")
+            .arg(&estimates)
+            .assert()
+            .success();
+    };
+    plot(&["heatmap", "--out", "map.svg"]);
+    let (meas, config) = (meas.to_str().unwrap(), config.to_str().unwrap());
+    plot(&[
+        "series",
+        "--meas",
+        meas,
+        "--config",
+        config,
+        "--subsystem",
+        "3",
+        "--state",
+        "1",
+        "--out",
+        "car3.svg",
+    ]);
+}
