@@ -74,7 +74,7 @@ impl StepLayout {
 /// A plain decimal integer (what `usize::from_str` accepts, without its allocation-free but
 /// slower UTF-8 round trip); `None` when empty, not all digits, or too large.
 #[inline]
-fn parse_index(bytes: &[u8]) -> Option<usize> {
+fn parse_plain_index(bytes: &[u8]) -> Option<usize> {
     let digits = bytes.strip_prefix(b"+").unwrap_or(bytes);
     if digits.is_empty() {
         return None;
@@ -88,6 +88,50 @@ fn parse_index(bytes: &[u8]) -> Option<usize> {
         value = value.checked_mul(10)?.checked_add(d as usize)?;
     }
     Some(value)
+}
+
+/// An index `t` or `i`: a plain decimal integer, or a number with an integral value as numpy
+/// and pandas write integers held in floats (`1.0`, `1.000000000000000000e+00`).
+#[inline]
+fn parse_index(bytes: &[u8]) -> Option<usize> {
+    parse_plain_index(bytes).or_else(|| {
+        let value: f64 = std::str::from_utf8(bytes).ok()?.parse().ok()?;
+        // Below 2⁵³ every integer is exact in f64.
+        let integral = value.fract() == 0.0 && (0.0..9.007_199_254_740_992e15).contains(&value);
+        integral.then_some(value as usize)
+    })
+}
+
+/// Whether a cell's text is a missing value as numpy (`nan`) and pandas (`NaN`) write one.
+fn is_nan_text(text: &str) -> bool {
+    text.eq_ignore_ascii_case("nan")
+}
+
+/// The cells of a header row, trimmed, without the `# ` that `numpy.savetxt` puts before its
+/// header line.
+pub fn header_cells<'a>(cells: impl Iterator<Item = &'a [u8]>) -> Vec<String> {
+    let mut out: Vec<String> = cells
+        .map(|f| String::from_utf8_lossy(f).trim().to_string())
+        .collect();
+    if let Some(first) = out.first_mut()
+        && let Some(rest) = first.strip_prefix('#')
+    {
+        *first = rest.trim_start().to_string();
+    }
+    out
+}
+
+/// What a header that is not the expected one most likely means, for the message: a
+/// DataFrame's index written before `t` (`to_csv` without `index=False`), or columns separated
+/// by spaces (`numpy.savetxt` without `delimiter=","`).
+fn header_hint(found: &[String], expected: &[String]) -> &'static str {
+    if found.len() == expected.len() + 1 && found[1..] == *expected {
+        " (a leading index column: a pandas DataFrame written without index=False?)"
+    } else if found.len() == 1 && found[0].split_whitespace().count() > 1 {
+        " (columns separated by spaces: numpy.savetxt writes commas with delimiter=\",\")"
+    } else {
+        ""
+    }
 }
 
 /// Trailing columns that hold an indicator, 0 or 1: whether the measurement arrived.
@@ -164,17 +208,14 @@ impl<R: Read> StepReader<R> {
         if !got {
             return Err(this.err(1, format!("empty file; expected the header `{expected}`")));
         }
-        let found: Vec<String> = this
-            .record
-            .iter()
-            .map(|f| String::from_utf8_lossy(f).trim().to_string())
-            .collect();
-        if found.join(",") != expected {
+        let found = header_cells(this.record.iter());
+        if found != this.header {
             return Err(this.err(
                 1,
                 format!(
-                    "expected the header `{expected}`, found `{}`",
-                    found.join(",").escape_debug()
+                    "expected the header `{expected}`, found `{}`{}",
+                    found.join(",").escape_debug(),
+                    header_hint(&found, &this.header)
                 ),
             ));
         }
@@ -324,15 +365,20 @@ impl<R: Read> StepReader<R> {
                 ),
             ));
         };
-        if text.is_empty() {
+        if text.is_empty() || is_nan_text(text) {
             if col >= self.optional_from {
                 return Ok(f64::NAN);
             }
             return Err(self.err(
                 line,
                 format!(
-                    "column `{}`: empty cell{}",
+                    "column `{}`: {}{}",
                     self.column_name(col),
+                    if text.is_empty() {
+                        "empty cell".to_string()
+                    } else {
+                        format!("expected a finite number, found `{text}`")
+                    },
                     self.empty_hint
                 ),
             ));
@@ -353,7 +399,7 @@ impl<R: Read> StepReader<R> {
 
 #[cfg(test)]
 mod tests {
-    use super::parse_index;
+    use super::{header_cells, parse_index, parse_plain_index};
 
     #[test]
     fn index_parsing_matches_the_standard_library() {
@@ -374,10 +420,39 @@ mod tests {
             "99999999999999999999",
         ] {
             assert_eq!(
-                parse_index(text.as_bytes()),
+                parse_plain_index(text.as_bytes()),
                 text.parse::<usize>().ok(),
                 "{text:?}"
             );
         }
+    }
+
+    /// numpy and pandas write integers held in floats as `1.0` or `1.000000000000000000e+00`:
+    /// read as the integer; anything with a fraction, negative or beyond 2⁵³ is not an index.
+    #[test]
+    fn indices_written_as_floats_are_read_when_integral() {
+        for (text, want) in [
+            ("12", Some(12)),
+            ("1.0", Some(1)),
+            ("1.000000000000000000e+00", Some(1)),
+            ("2.5e1", Some(25)),
+            ("1e3", Some(1000)),
+            ("1.5", None),
+            ("-1.0", None),
+            ("nan", None),
+            ("inf", None),
+            ("1e300", None),
+            ("", None),
+        ] {
+            assert_eq!(parse_index(text.as_bytes()), want, "{text:?}");
+        }
+    }
+
+    #[test]
+    fn a_numpy_header_loses_its_comment_mark() {
+        let cells = |line: &'static str| header_cells(line.split(',').map(str::as_bytes));
+        assert_eq!(cells("# t,i,y1"), ["t", "i", "y1"]);
+        assert_eq!(cells("#t, i ,y1"), ["t", "i", "y1"]);
+        assert_eq!(cells("t,i,y1"), ["t", "i", "y1"]);
     }
 }

@@ -46,7 +46,7 @@ fn probe_csv(path: &Path) -> Result<(Vec<String>, usize)> {
             msg: "empty file; expected a header row".into(),
         });
     }
-    let header: Vec<String> = record.iter().map(|f| f.trim().to_string()).collect();
+    let header = crate::io::csv_in::header_cells(record.as_byte_record().iter());
     let mut first_t: Option<String> = None;
     let mut subsystems = 0;
     while reader.read_record(&mut record).map_err(csv_err)? {

@@ -19,6 +19,7 @@ mod innovations;
 mod joint_filter;
 mod plot_cli;
 mod properties;
+mod python_files;
 mod reference_filters;
 mod run_api;
 mod simulate_cli;
