@@ -177,6 +177,125 @@ pub struct RawOverride {
     pub p: Option<f64>,
 }
 
+/// One config value given beside the file (`--set KEY=VALUE`, docs/theory.md §13): the key
+/// by its dotted path as messages name it (`dropout.p`, `model.M`, `override[2].p`), the
+/// value in TOML syntax (`0.7`, `[[0.02]]`; a bare word is a string, `sine`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ConfigSetting {
+    pub key: String,
+    pub value: String,
+}
+
+impl std::str::FromStr for ConfigSetting {
+    type Err = String;
+
+    /// `KEY=VALUE`.
+    fn from_str(text: &str) -> std::result::Result<Self, String> {
+        match text.split_once('=') {
+            Some((key, value)) if !key.trim().is_empty() => Ok(Self {
+                key: key.trim().to_string(),
+                value: value.trim().to_string(),
+            }),
+            _ => Err(format!(
+                "expected KEY=VALUE with a config key by its dotted path, e.g. dropout.p=0.7, found `{text}`"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for ConfigSetting {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(f, "{}={}", self.key, self.value)
+    }
+}
+
+impl ConfigSetting {
+    /// Whether a message about `key` concerns this setting's value: the key itself or a part
+    /// of it (`model.M` for `model`, `override[2].p` for `override[2]`).
+    pub fn covers(&self, key: &str) -> bool {
+        key.strip_prefix(self.key.as_str())
+            .is_some_and(|rest| rest.is_empty() || rest.starts_with(['.', '[']))
+    }
+
+    /// The value as TOML; a bare word that is not TOML (`sine`) is a string.
+    fn toml_value(&self) -> std::result::Result<toml::Value, String> {
+        let parsed = toml::from_str::<toml::Table>(&format!("value = {}", self.value))
+            .map_err(|e| e.message().trim().replace('\n', " "))
+            .and_then(|mut t| t.remove("value").ok_or_else(|| "no value".to_string()));
+        match parsed {
+            Ok(v) => Ok(v),
+            Err(_)
+                if !self.value.is_empty()
+                    && self
+                        .value
+                        .chars()
+                        .all(|c| c.is_alphanumeric() || c == '_' || c == '-') =>
+            {
+                Ok(toml::Value::String(self.value.clone()))
+            }
+            Err(e) => Err(format!("`{}` is not a TOML value: {e}", self.value)),
+        }
+    }
+
+    /// Puts the value into `table` at the key's path: tables on the way are made when missing,
+    /// `name[k]` is the `k`-th (from 1) table of the array `name` (`k` one past its end appends
+    /// one).
+    fn apply(&self, table: &mut toml::Table) -> std::result::Result<(), String> {
+        let value = self.toml_value()?;
+        let parts: Vec<&str> = self.key.split('.').collect();
+        let mut here = table;
+        for (depth, part) in parts.iter().enumerate() {
+            let (name, index) = match part.split_once('[') {
+                Some((name, rest)) => {
+                    let k = rest
+                        .strip_suffix(']')
+                        .and_then(|k| k.parse::<usize>().ok())
+                        .filter(|&k| k >= 1)
+                        .ok_or_else(|| format!("`{part}`: expected name[k] with k ≥ 1"))?;
+                    (name, Some(k))
+                }
+                None => (*part, None),
+            };
+            if name.is_empty() {
+                return Err("expected a dotted path such as model.M".into());
+            }
+            let last = depth + 1 == parts.len();
+            let slot = match index {
+                None if last => {
+                    here.insert(name.to_string(), value);
+                    return Ok(());
+                }
+                None => here
+                    .entry(name.to_string())
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new())),
+                Some(k) => {
+                    let list = here
+                        .entry(name.to_string())
+                        .or_insert_with(|| toml::Value::Array(Vec::new()))
+                        .as_array_mut()
+                        .ok_or_else(|| format!("`{name}` is not a list of tables"))?;
+                    if k == list.len() + 1 {
+                        list.push(toml::Value::Table(toml::Table::new()));
+                    }
+                    let len = list.len();
+                    let item = list
+                        .get_mut(k - 1)
+                        .ok_or_else(|| format!("`{name}` has {len} tables, not {k}"))?;
+                    if last {
+                        *item = value;
+                        return Ok(());
+                    }
+                    item
+                }
+            };
+            here = slot
+                .as_table_mut()
+                .ok_or_else(|| format!("`{}` is not a table", parts[..=depth].join(".")))?;
+        }
+        Ok(())
+    }
+}
+
 /// A config as read from its source: the parsed tables plus where it came from.
 #[derive(Debug, Clone)]
 pub struct ConfigSource {
@@ -186,6 +305,9 @@ pub struct ConfigSource {
     pub dir: PathBuf,
     /// The TOML text, kept verbatim so that `run.json` can record it.
     pub text: String,
+    /// The values given beside the text ([`ConfigSource::with_settings`]), in order; `raw`
+    /// holds them.
+    pub settings: Vec<ConfigSetting>,
     pub raw: RawConfig,
 }
 
@@ -234,7 +356,85 @@ impl ConfigSource {
             name: name.to_string(),
             dir,
             text,
+            settings: Vec::new(),
             raw,
         })
+    }
+
+    /// The config with `settings` applied over its text, in order (a later one wins), each
+    /// read as the file is: a value of the wrong type, an unknown key or a value the model
+    /// refuses names the key and says that it came from `--set`.
+    pub fn with_settings(mut self, settings: &[ConfigSetting]) -> Result<Self> {
+        if settings.is_empty() {
+            return Ok(self);
+        }
+        let mut table: toml::Table = toml::from_str(&self.text).map_err(|e| Error::Config {
+            file: self.name.clone(),
+            key: "config".into(),
+            msg: e.message().trim().replace('\n', " "),
+        })?;
+        for setting in settings {
+            let refused = |msg: String| Error::Config {
+                file: self.name.clone(),
+                key: format!("{} (from --set)", setting.key),
+                msg,
+            };
+            setting.apply(&mut table).map_err(refused)?;
+            // Read back after each, so that a value of the wrong type names its own key.
+            self.raw = toml::Table::try_into(table.clone())
+                .map_err(|e: toml::de::Error| refused(e.message().trim().replace('\n', " ")))?;
+            self.settings.push(setting.clone());
+        }
+        Ok(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn set(text: &str) -> ConfigSetting {
+        text.parse().unwrap()
+    }
+
+    /// A setting puts its TOML value at its path: tables made on the way, `name[k]` the
+    /// `k`-th table (one past the end appends), a bare word a string.
+    #[test]
+    fn settings_put_their_value_at_their_path() {
+        let mut table: toml::Table = toml::from_str("a = 1\n[[o]]\nx = 2\n").unwrap();
+        for s in [
+            "b.c = [[0.5]]",
+            "o[1].x=3",
+            "o[2].y=true",
+            "k=sine",
+            "s=\"two words\"",
+        ] {
+            set(s).apply(&mut table).unwrap();
+        }
+        let want: toml::Table = toml::from_str(
+            "a = 1\nk = \"sine\"\ns = \"two words\"\n[b]\nc = [[0.5]]\n[[o]]\nx = 3\n[[o]]\ny = true\n",
+        )
+        .unwrap();
+        assert_eq!(table, want);
+        for (bad, says) in [
+            ("o[4].x=1", "has 2 tables, not 4"),
+            ("a.b=1", "`a` is not a table"),
+            ("o[0].x=1", "k ≥ 1"),
+            ("b.c=[1", "is not a TOML value"),
+        ] {
+            let err = set(bad).apply(&mut table).unwrap_err();
+            assert!(err.contains(says), "{bad}: {err}");
+        }
+        assert!("novalue".parse::<ConfigSetting>().is_err());
+        assert!("=1".parse::<ConfigSetting>().is_err());
+    }
+
+    /// A message about a key concerns the settings of that key and of the tables above it.
+    #[test]
+    fn a_setting_covers_its_key_and_what_is_inside() {
+        let s = set("override[2]={p = 0.5}");
+        assert!(s.covers("override[2]") && s.covers("override[2].p"));
+        assert!(!s.covers("override[21].p") && !s.covers("override"));
+        assert!(set("model=1").covers("model.M") && !set("model.M=1").covers("model.MM"));
     }
 }

@@ -7,6 +7,7 @@ use std::path::Path;
 use anyhow::Result;
 
 use sisfilt::check::{ModelCheck, WindowCheck, check};
+use sisfilt::config::ConfigSetting;
 use sisfilt::inputs::InputStream;
 use sisfilt::messages::warn;
 use sisfilt::model::Model;
@@ -15,8 +16,8 @@ use sisfilt::smoother::{DEFAULT_MAX_MEMORY, human_bytes};
 use super::print_line;
 
 /// `sisfilt check CONFIG`: the report on standard output, warnings on standard error.
-pub fn run(path: &Path) -> Result<()> {
-    let model = Model::load(path)?;
+pub fn run(path: &Path, settings: &[ConfigSetting]) -> Result<()> {
+    let model = Model::load(path, settings)?;
     // Everything simulate reads: the inputs file too (all of it without `steps`).
     let mut inputs = InputStream::open(&model, None)?;
     let mut u = vec![0.0; model.subsystems * model.dims.m];
@@ -31,7 +32,7 @@ pub fn run(path: &Path) -> Result<()> {
     }
     let figures = check(&model)?;
     // Print only once everything passed, so that a bad config prints nothing on stdout.
-    print_line(&report(path, &figures))?;
+    print_line(&report(path, settings, &figures))?;
     for w in figures.unstable_windows() {
         warn(format!(
             "{}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
@@ -43,10 +44,11 @@ pub fn run(path: &Path) -> Result<()> {
 }
 
 /// The report of `check` on the config at `path`, a line per figure.
-fn report(path: &Path, figures: &ModelCheck) -> String {
+fn report(path: &Path, settings: &[ConfigSetting], figures: &ModelCheck) -> String {
     let d = figures.dims;
+    let set: String = settings.iter().map(|s| format!(" --set {s}")).collect();
     let mut report = vec![
-        format!("config: {}", path.display()),
+        format!("config: {}{set}", path.display()),
         match figures.steps {
             Some(steps) => format!(
                 "chain: N = {} subsystems, T = {steps} steps",

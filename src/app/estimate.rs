@@ -24,7 +24,7 @@ use sisfilt::run::{
 };
 
 use super::choice::choice;
-use super::in_flag_words;
+use super::{SetArgs, in_flag_words};
 
 #[derive(Debug, clap::Args)]
 pub struct EstimateArgs {
@@ -111,6 +111,8 @@ pub struct EstimateArgs {
     /// formatting and writing them (a `timings:` line).
     #[arg(long)]
     pub timings: bool,
+    #[command(flatten)]
+    pub set: SetArgs,
 }
 
 fn parse_max_memory(text: &str) -> Result<u64, String> {
@@ -155,7 +157,10 @@ impl EstimateArgs {
 /// returns the folder of that run record, if one was used.
 fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>)> {
     if let Some(path) = &args.config {
-        return Ok((ConfigSource::from_file(path)?, None));
+        return Ok((
+            ConfigSource::from_file(path)?.with_settings(&args.set.set)?,
+            None,
+        ));
     }
     let missing = || {
         Error::Usage(format!(
@@ -172,7 +177,8 @@ fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>
     }
     let dir = folder_of(&args.meas).to_path_buf();
     let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
-    Ok((record.config_source(&dir.join(RunRecord::FILE))?, Some(dir)))
+    let src = record.config_source(&dir.join(RunRecord::FILE))?;
+    Ok((src.with_settings(&args.set.set)?, Some(dir)))
 }
 
 /// `sisfilt estimate`: the estimates of every `(t, i)`, written as they come (or, with

@@ -12,7 +12,7 @@ use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
 
 use super::choice::choice;
-use super::{config_files, in_flag_words, print_line, run_inputs};
+use super::{SetArgs, config_files, in_flag_words, print_line, run_inputs};
 
 #[derive(Debug, clap::Args)]
 pub struct EvaluateArgs {
@@ -67,11 +67,13 @@ pub struct EvaluateArgs {
     /// config's p (or each value of --sweep-p): what a wrong p costs each filter.
     #[arg(long, value_name = "P")]
     pub true_p: Option<f64>,
+    #[command(flatten)]
+    pub set: SetArgs,
 }
 
 /// `sisfilt evaluate`: the table on standard output, the JSON in `--out`.
 pub fn run(args: &EvaluateArgs) -> Result<()> {
-    let model = Model::load(&args.config)?;
+    let model = Model::load(&args.config, &args.set.set)?;
     if let Some(out) = &args.out {
         check_files(
             &config_files(&args.config, &model),
@@ -90,7 +92,11 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         smooth: args.smooth,
         true_p: args.true_p,
     };
-    let config_name = args.config.display().to_string();
+    // The settings go with the name, which the JSON and the figures carry.
+    let config_name = std::iter::once(args.config.display().to_string())
+        .chain(args.set.set.iter().map(|s| format!("--set {s}")))
+        .collect::<Vec<_>>()
+        .join(" ");
     let sweep = args.sweep_p.as_deref();
     let total_runs = args.runs * sweep.map_or(1, <[f64]>::len);
     let bar = if std::io::stderr().is_terminal() && verbosity() >= Verbosity::Normal {

@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+use sisfilt::config::ConfigSetting;
 use sisfilt::error::Error;
 use sisfilt::evaluate::EvaluateError;
 use sisfilt::inputs::{InputStream, RunInputs};
@@ -62,6 +63,17 @@ impl Cli {
     }
 }
 
+/// `--set KEY=VALUE`: config values over the file's, for every command that reads a config.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SetArgs {
+    /// Set a config value over the file's: the key by its dotted path, the value in TOML
+    /// syntax (repeatable, the last wins), e.g. --set dropout.p=0.7 --set 'model.M=[[0.02]]'
+    /// --set 'override[1].p=0.3'. Checked as the file is; recorded in run.json and the
+    /// estimates' metadata.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<ConfigSetting>,
+}
+
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Validate a config and print its dimensions, which parameters vary, the interconnection
@@ -69,6 +81,8 @@ pub enum Command {
     Check {
         /// The TOML config.
         config: PathBuf,
+        #[command(flatten)]
+        set: SetArgs,
     },
     /// Simulate the chain with random dropouts; write truth.csv, measurements.csv, inputs.csv
     /// (when there are inputs) and run.json into --out.
@@ -100,7 +114,7 @@ pub enum Command {
 /// Runs one command.
 pub fn run(command: Command) -> Result<()> {
     match command {
-        Command::Check { config } => check::run(&config),
+        Command::Check { config, set } => check::run(&config, &set.set),
         Command::Simulate(args) => simulate::run(&args),
         // On a worker of rayon's pool, so that the parallel loops of every step (filter,
         // writer, readers) start without waking the pool from outside each time.

@@ -9,6 +9,8 @@ use clap::Subcommand;
 use sisfilt::plot::heatmap::HeatmapPlot;
 use sisfilt::plot::series::SeriesPlot;
 
+use super::SetArgs;
+
 /// The figures of `sisfilt plot` (docs/theory.md §13); each writes one SVG file.
 #[derive(Debug, Subcommand)]
 pub enum PlotCommand {
@@ -47,6 +49,8 @@ pub struct PlotSeriesArgs {
     /// The config, to learn J (default: the run.json beside --meas or --truth).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub set: SetArgs,
     /// The subsystem i (1..N).
     #[arg(long)]
     pub subsystem: usize,
@@ -97,6 +101,7 @@ pub fn run(command: PlotCommand) -> Result<()> {
             meas: a.meas,
             smoothed: a.smoothed,
             config: a.config,
+            settings: a.set.set,
             subsystem: a.subsystem,
             state: a.state,
             out: a.out,

@@ -14,7 +14,7 @@ use sisfilt::messages::info;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
 
-use super::config_files;
+use super::{SetArgs, config_files};
 
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
@@ -33,12 +33,14 @@ pub struct SimulateArgs {
     /// by default they hold the noise R u + d, as in the paper's model.
     #[arg(long)]
     pub mark_missing: bool,
+    #[command(flatten)]
+    pub set: SetArgs,
 }
 
 /// `sisfilt simulate`: the files of one realisation, all or none.
 pub fn run(args: &SimulateArgs) -> Result<()> {
     // The source too: run.json records the config's text.
-    let src = ConfigSource::from_file(&args.config)?;
+    let src = ConfigSource::from_file(&args.config)?.with_settings(&args.set.set)?;
     let mut model = Model::from_config(&src)?;
     if let Some(steps) = args.steps {
         model.steps = Some(usize::try_from(steps).unwrap_or(usize::MAX));
@@ -167,6 +169,7 @@ fn write_simulation(
         config_path: args.config.display().to_string(),
         config_dir,
         config_toml: src.text.clone(),
+        settings: src.settings.iter().map(ToString::to_string).collect(),
         config: src.raw.clone(),
         files,
     };

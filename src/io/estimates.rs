@@ -97,11 +97,14 @@ impl EstimatesMetadata {
     }
 }
 
-/// The config a run used: its name and the SHA-256 of its text.
+/// The config a run used: its name, the SHA-256 of its text and the values given over it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ConfigRef {
     pub path: String,
     pub sha256: String,
+    /// `--set KEY=VALUE`, in order (left out when none).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub settings: Vec<String>,
 }
 
 impl ConfigRef {
@@ -114,6 +117,7 @@ impl ConfigRef {
                 .iter()
                 .map(|b| format!("{b:02x}"))
                 .collect(),
+            settings: config.settings.iter().map(ToString::to_string).collect(),
         }
     }
 }

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{ConfigSource, RawConfig};
+use crate::config::{ConfigSetting, ConfigSource, RawConfig};
 use crate::error::{Error, Result};
 
 /// The record of one `simulate` run.
@@ -29,7 +29,11 @@ pub struct RunRecord {
     pub config_dir: PathBuf,
     /// The config file verbatim.
     pub config_toml: String,
-    /// The same config as structured data, for readers of this file.
+    /// The values given over it (`--set KEY=VALUE`), in order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub settings: Vec<String>,
+    /// The config the run used (with the settings), as structured data, for readers of this
+    /// file.
     pub config: RawConfig,
     /// The data files written beside this record.
     pub files: Vec<String>,
@@ -56,14 +60,27 @@ impl RunRecord {
         })
     }
 
-    /// The recorded config, named after the record for messages.
+    /// The recorded config with its settings, named after the record for messages.
     pub fn config_source(&self, record_path: &Path) -> Result<ConfigSource> {
         let record_dir = record_path.parent().unwrap_or(Path::new("."));
+        let name = format!("{} (config of {})", record_path.display(), self.config_path);
+        let settings = self
+            .settings
+            .iter()
+            .map(|s| {
+                s.parse::<ConfigSetting>().map_err(|msg| Error::Config {
+                    file: record_path.display().to_string(),
+                    key: "settings".into(),
+                    msg,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
         ConfigSource::from_text(
-            &format!("{} (config of {})", record_path.display(), self.config_path),
+            &name,
             record_dir.join(&self.config_dir),
             self.config_toml.clone(),
-        )
+        )?
+        .with_settings(&settings)
     }
 
     /// `target` relative to `base` (both made absolute), or `target` absolute when that fails.

@@ -4,22 +4,29 @@
 
 use nalgebra::{DMatrix, SymmetricEigen};
 
-use crate::config::RawMatrix;
+use crate::config::{ConfigSetting, RawMatrix};
 use crate::error::{Error, Result};
 
 /// Relative tolerance of the symmetry and semidefiniteness checks on config matrices.
 const SYMMETRY_TOL: f64 = 1e-10;
 
-/// Checks the values of the config `file`; each error names the file and the key.
+/// Checks the values of the config `file`; each error names the file and the key, and says
+/// when the value came from a `--set` (one of `settings`).
 pub(super) struct Checker<'a> {
     pub(super) file: &'a str,
+    pub(super) settings: &'a [ConfigSetting],
 }
 
 impl Checker<'_> {
     pub(super) fn err(&self, key: &str, msg: impl Into<String>) -> Error {
+        let set = self.settings.iter().any(|s| s.covers(key));
         Error::Config {
             file: self.file.to_string(),
-            key: key.to_string(),
+            key: if set {
+                format!("{key} (from --set)")
+            } else {
+                key.to_string()
+            },
             msg: msg.into(),
         }
     }

@@ -12,7 +12,9 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::config::{ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability};
+use crate::config::{
+    ConfigSetting, ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability,
+};
 use crate::error::Result;
 
 mod checker;
@@ -248,10 +250,11 @@ impl Override {
 }
 
 impl Model {
-    /// Reads, parses and checks the config file at `path`: the library's one way to load a
-    /// config (docs/theory.md §13). Relative paths in it resolve against its folder.
-    pub fn load(path: &Path) -> Result<Self> {
-        Self::from_config(&ConfigSource::from_file(path)?)
+    /// Reads, parses and checks the config file at `path` with `settings` over it (`--set`,
+    /// [`ConfigSource::with_settings`]): the library's one way to load a config
+    /// (docs/theory.md §13). Relative paths in it resolve against its folder.
+    pub fn load(path: &Path, settings: &[ConfigSetting]) -> Result<Self> {
+        Self::from_config(&ConfigSource::from_file(path)?.with_settings(settings)?)
     }
 
     /// Parses and checks config TOML held in memory; `name` names it in messages and relative
@@ -273,7 +276,10 @@ impl Model {
 
     /// Checks a parsed config and builds the model (docs/theory.md §1, §13).
     pub fn from_config(src: &ConfigSource) -> Result<Self> {
-        let c = Checker { file: &src.name };
+        let c = Checker {
+            file: &src.name,
+            settings: &src.settings,
+        };
         let raw: &RawConfig = &src.raw;
         let subsystems = c.count("subsystems", raw.subsystems, 1)?;
         if subsystems > MAX_SUBSYSTEMS {
@@ -641,7 +647,7 @@ mod tests {
     fn load_and_from_toml_str_agree() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/heat_rod.toml");
         let text = std::fs::read_to_string(&path).unwrap();
-        let loaded = Model::load(&path).unwrap();
+        let loaded = Model::load(&path, &[]).unwrap();
         let parsed = Model::from_toml_str("rod", path.parent().unwrap(), &text).unwrap();
         assert_eq!(loaded.dims, parsed.dims);
         assert_eq!(

@@ -29,6 +29,7 @@ use super::{
     Swatch, TITLE_SIZE, TRUTH, WIDTH, commit_svg, draw_centered, draw_legend, fmt_tick, font,
     header_height, legend_lines, open_output, padded, palette,
 };
+use crate::config::ConfigSetting;
 use crate::error::Error;
 use crate::io::{Role, RunRecord, folder_of};
 use crate::messages::warn;
@@ -90,6 +91,8 @@ pub struct SeriesPlot {
     pub smoothed: Option<PathBuf>,
     /// The config, to learn `J` (else the run record beside `meas` or `truth`).
     pub config: Option<PathBuf>,
+    /// Values over the config's (`--set`).
+    pub settings: Vec<ConfigSetting>,
     /// The subsystem `i` (1..N).
     pub subsystem: usize,
     /// The state element `k` (1..n).
@@ -278,7 +281,7 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         ));
     }
     if let Some(meas_path) = &args.meas {
-        let model = measurement_model(args.config.as_deref(), meas_path, args.truth.as_deref())?;
+        let model = measurement_model(args, meas_path)?;
         data.nis_q = Some(q);
         let (direct, why_separate) = match model {
             Some(model) => direct_row(&model, q, n, big_n, args.subsystem, k, steps),
@@ -294,21 +297,18 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
             why_separate,
         });
     } else if let Some(config) = &args.config {
-        data.nis_q = Some(Model::load(config)?.dims.q);
+        data.nis_q = Some(Model::load(config, &args.settings)?.dims.q);
     }
     Ok(data)
 }
 
 /// The model that says what `y` measures: `--config`, else the `run.json` beside the
 /// measurements or the truth. A run record that cannot be used only costs the overlay.
-fn measurement_model(
-    config: Option<&Path>,
-    meas: &Path,
-    truth: Option<&Path>,
-) -> Result<Option<Model>> {
-    if let Some(path) = config {
-        return Ok(Some(Model::load(path)?));
+fn measurement_model(args: &SeriesPlot, meas: &Path) -> Result<Option<Model>> {
+    if let Some(path) = &args.config {
+        return Ok(Some(Model::load(path, &args.settings)?));
     }
+    let truth = args.truth.as_deref();
     let mut dirs = vec![folder_of(meas)];
     if let Some(truth) = truth
         && folder_of(truth) != dirs[0]
@@ -318,12 +318,19 @@ fn measurement_model(
     for dir in dirs {
         let record_path = dir.join(RunRecord::FILE);
         let model = RunRecord::load(dir).and_then(|record| match record {
-            Some(r) => Model::from_config(&r.config_source(&record_path)?).map(Some),
+            Some(r) => {
+                let src = r
+                    .config_source(&record_path)?
+                    .with_settings(&args.settings)?;
+                Model::from_config(&src).map(Some)
+            }
             None => Ok(None),
         });
         match model {
             Ok(Some(m)) => return Ok(Some(m)),
             Ok(None) => {}
+            // The user's own --set values must fit the model: bad input, not a lost overlay.
+            Err(e) if !args.settings.is_empty() => return Err(e.into()),
             Err(e) => warn(format!(
                 "{e}: drawing the measurements in a panel of their own"
             )),

@@ -22,5 +22,6 @@ mod properties;
 mod python_files;
 mod reference_filters;
 mod run_api;
+mod settings;
 mod simulate_cli;
 mod smoother;
