@@ -62,6 +62,17 @@ pub enum Error {
     #[error("{file}: interconnection system at t = {t} is not well posed: {msg}")]
     IllPosed { file: String, t: usize, msg: String },
 
+    /// The paper's transfer solver (docs/theory.md §2) cannot run on a chain where the banded
+    /// solve can: an interior subsystem's `G22` is singular.
+    #[error(
+        "{file}: the transfer solver cannot run at t = {t}: it needs G22 of every interior subsystem invertible, but G22 of subsystem {subsystem} is singular (the banded solver needs no such inverse)"
+    )]
+    TransferSolver {
+        file: String,
+        t: usize,
+        subsystem: usize,
+    },
+
     /// Reading or writing a file failed. (`err` is not a `#[source]`: the message already
     /// says it, and `{:#}` would print it twice.)
     #[error("{}: {err}", path.display())]

@@ -1,12 +1,12 @@
 //! `sisfilt estimate`: runs a filter (or smoother) over a measurement file and writes the
 //! estimates `x̂` with their error covariances `P` (docs/theory.md §13).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 
 use sisfilt::accuracy::AccuracyReport;
-use sisfilt::config::ConfigSource;
+use sisfilt::config::{ConfigSource, RawConfig};
 use sisfilt::error::Error;
 use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use sisfilt::inputs::{InputStream, open_csv};
@@ -157,10 +157,18 @@ impl EstimateArgs {
 /// returns the folder of that run record, if one was used.
 fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>)> {
     if let Some(path) = &args.config {
-        return Ok((
-            ConfigSource::from_file(path)?.with_settings(&args.set.set)?,
-            None,
-        ));
+        let src = ConfigSource::from_file(path)?;
+        if let Some(record) = record_beside(&args.meas)
+            && !same_config(&record.config, &src.raw)
+        {
+            warn(format!(
+                "--config {}: not the config that simulated --meas {} (the one its {} records): the estimates are of another model than the data's",
+                path.display(),
+                args.meas.display(),
+                RunRecord::FILE
+            ));
+        }
+        return Ok((src.with_settings(&args.set.set)?, None));
     }
     let missing = || {
         Error::Usage(format!(
@@ -179,6 +187,51 @@ fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>
     let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
     let src = record.config_source(&dir.join(RunRecord::FILE))?;
     Ok((src.with_settings(&args.set.set)?, Some(dir)))
+}
+
+/// The run record beside a data file, when there is one that reads (a record that does not
+/// only costs the comparisons it serves).
+fn record_beside(path: &Path) -> Option<RunRecord> {
+    if path.as_os_str() == "-" {
+        return None;
+    }
+    RunRecord::load(folder_of(path)).ok().flatten()
+}
+
+/// Whether two configs are the same tables (the settings applied).
+fn same_config(a: &RawConfig, b: &RawConfig) -> bool {
+    serde_json::to_value(a).ok() == serde_json::to_value(b).ok()
+}
+
+/// Warns when `--truth` and `--meas` come from different simulations: the run records beside
+/// them differ in seed, horizon or config.
+fn warn_if_other_truth(meas: &Path, truth: &Path) {
+    let same_folder =
+        |a: &Path, b: &Path| match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => a == b,
+        };
+    if meas.as_os_str() == "-" || same_folder(folder_of(meas), folder_of(truth)) {
+        return;
+    }
+    let (Some(m), Some(t)) = (record_beside(meas), record_beside(truth)) else {
+        return;
+    };
+    let differs = [
+        (m.seed != t.seed).then(|| format!("seed {} against {}", t.seed, m.seed)),
+        (m.steps != t.steps).then(|| format!("T = {} against {}", t.steps, m.steps)),
+        (!same_config(&m.config, &t.config)).then(|| "the config".to_string()),
+    ];
+    let differs: Vec<String> = differs.into_iter().flatten().collect();
+    if !differs.is_empty() {
+        warn(format!(
+            "--truth {}: from another simulation than --meas {} (their {} files differ: {}): the accuracy figures compare unrelated runs",
+            truth.display(),
+            meas.display(),
+            RunRecord::FILE,
+            differs.join(", ")
+        ));
+    }
 }
 
 /// `sisfilt estimate`: the estimates of every `(t, i)`, written as they come (or, with
@@ -212,6 +265,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         .collect();
     read.push(Role::new("--meas", &args.meas));
     if let Some(path) = &args.truth {
+        warn_if_other_truth(&args.meas, path);
         read.push(Role::new("--truth", path));
     }
     if let Some(path) = InputStream::path(&model, inputs_file.as_deref()) {

@@ -1,7 +1,7 @@
 //! `sisfilt evaluate`: a Monte Carlo comparison of the filters (docs/theory.md §11).
 
-use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
@@ -24,7 +24,8 @@ pub struct EvaluateArgs {
     /// Seed of the first run; run r uses seed + r (default: the config's `seed`).
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Write the results as JSON to this file.
+    /// Write the results as JSON to this file; `-` is standard output, and the table then goes
+    /// to standard error.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Leave the steps t ≤ BURN_IN out of the figures (the initial transient).
@@ -121,7 +122,7 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
             warn_left_out(e, &format!(" at p = {p}"));
         }
         write_json(out, &result)?;
-        return print_line(result.table().trim_end_matches('\n'));
+        return print_table(args, &result.table());
     }
     let result = sisfilt::evaluate::evaluate(&model, &inputs, &config_name, opts, || bar.inc(1))
         .map_err(in_flag_words)?;
@@ -139,7 +140,20 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
     warn_left_out(&result, "");
     // The file first: a reader of the table that stops early must not cost the JSON.
     write_json(out, &result)?;
-    print_line(result.table().trim_end_matches('\n'))
+    print_table(args, &result.table())
+}
+
+/// The table on standard output, or, when the JSON takes standard output (`--out -`), on
+/// standard error (not with `--quiet`), so that a reader such as `jq` gets the JSON alone.
+fn print_table(args: &EvaluateArgs, table: &str) -> Result<()> {
+    let table = table.trim_end_matches('\n');
+    if args.out.as_deref() != Some(Path::new("-")) {
+        return print_line(table);
+    }
+    if verbosity() >= Verbosity::Normal {
+        let _ = writeln!(std::io::stderr(), "{table}");
+    }
+    Ok(())
 }
 
 /// The NEES warning of docs/theory.md §11 for each filter of an evaluation.

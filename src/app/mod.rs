@@ -198,6 +198,7 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
         Error::Evaluate(EvaluateError::SweepP(p)) => {
             format!("--sweep-p: expected probabilities in [0, 1], found {p}")
         }
+        e @ Error::TransferSolver { .. } => format!("{e}; use --solver banded"),
         Error::Run(RunError::NothingScored) => "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
         other => return other,
     })

@@ -20,7 +20,7 @@ use super::{SetArgs, config_files};
 pub struct SimulateArgs {
     /// The TOML config.
     pub config: PathBuf,
-    /// Output folder, created when missing.
+    /// Output folder, created when missing (a folder: not `-`).
     #[arg(long, default_value = ".")]
     pub out: PathBuf,
     /// Seed of every random draw (default: the config's `seed`, else 0).
@@ -51,6 +51,12 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
         ChainSolver::new(&model, w.first)?;
     }
     let out_dir = &args.out;
+    if out_dir.as_os_str() == "-" {
+        return Err(Error::Usage(
+            "--out -: simulate writes a folder of files (truth.csv, measurements.csv, inputs.csv, run.json), which standard output cannot hold; name a folder".into(),
+        )
+        .into());
+    }
     let read = config_files(&args.config, &model);
     let written: Vec<PathBuf> = simulation_files(model.dims.m)
         .map(|name| out_dir.join(name))

@@ -42,7 +42,7 @@ impl Choice for Compared {
         Variant {
             value: Self::DistributedPaper,
             name: "distributed-paper",
-            help: "two-step filter as printed in the paper (--paper)",
+            help: "two-step filter as printed in the paper (estimate --paper)",
         },
         Variant {
             value: Self::Joint,

@@ -486,7 +486,12 @@ pub fn evaluate(
             } else {
                 make_filter(model, name, &opts, &none).err()
             }
-            .map(|e| format!("{e}"))
+            .map(|e| match e {
+                Error::TransferSolver { .. } => format!(
+                    "{e}: the paper's filter runs on the transfer solver; the other two-step rows use the banded one"
+                ),
+                e => format!("{e}"),
+            })
         })
         .collect();
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();

@@ -128,12 +128,10 @@ impl TransferSolver {
                 .clone()
                 .try_inverse()
                 .filter(|inv| inv.iter().all(|v| v.is_finite()))
-                .ok_or_else(|| Error::IllPosed {
-                file: model.name.clone(),
+                .ok_or_else(|| Error::TransferSolver {
+                    file: model.name.clone(),
                     t,
-                    msg: format!(
-                        "the transfer solver needs G22 of every interior subsystem invertible, but G22 of subsystem {k} is singular; use --solver banded"
-                    ),
+                    subsystem: k,
                 })?;
             let g12_g22inv = g12 * &g22_inv;
             let mut phi = DMatrix::zeros(s, s);

@@ -448,6 +448,12 @@ impl Model {
         let Some(inp) = &src.raw.input else {
             return Ok(InputSpec::Zero);
         };
+        if m == 0 {
+            return Err(c.err(
+                "input",
+                "the model has no input matrices (none of C, H, R is given, so m = 0): the [input] table would never be used; remove it, or give C, H or R",
+            ));
+        }
         let amplitude = c.finite("input.amplitude", inp.amplitude.unwrap_or(1.0))?;
         Ok(match inp.kind {
             InputKind::Zero => InputSpec::Zero,
@@ -473,12 +479,7 @@ impl Model {
                     .path
                     .as_ref()
                     .ok_or_else(|| c.err("input.path", "required for kind = \"file\""))?;
-                if m == 0 {
-                    // Nothing reads u when m = 0 (no C, H or R given).
-                    InputSpec::Zero
-                } else {
-                    InputSpec::File(src.dir.join(path))
-                }
+                InputSpec::File(src.dir.join(path))
             }
         })
     }

@@ -6,23 +6,83 @@
 use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::Path;
+use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
-use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
+use crate::io::estimates::{EstimateKind, EstimatesColumns, EstimatesDocument};
 use crate::io::{StepLayout, StepReader};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
 type CsvReader = StepReader<Box<dyn Read>>;
 
-/// A file's name as used in messages.
-fn display_name(path: &Path) -> String {
-    path.display().to_string()
+/// A file's name as used in messages (`<stdin>` for `-`).
+pub(crate) fn display_name(path: &Path) -> String {
+    if is_stdin(path) {
+        "<stdin>".into()
+    } else {
+        path.display().to_string()
+    }
 }
 
-fn open(path: &Path) -> Result<Box<dyn Read>> {
-    Ok(Box::new(BufReader::new(
-        File::open(path).map_err(|e| Error::io(path, e))?,
-    )))
+/// A file's name for a figure's title: its last component, or `standard input` for `-`.
+pub(crate) fn file_name(path: &Path) -> String {
+    if is_stdin(path) {
+        return "standard input".into();
+    }
+    path.file_name().map_or_else(
+        || path.display().to_string(),
+        |f| f.to_string_lossy().into(),
+    )
+}
+
+fn is_stdin(path: &Path) -> bool {
+    path.as_os_str() == "-"
+}
+
+/// Opens a file the figures are drawn from; `-` is standard input, read once and kept, since
+/// a figure reads its files twice (the shape, then the rows) and only one of them can be
+/// standard input (`check_files`).
+pub(crate) fn open(path: &Path) -> Result<Box<dyn Read>> {
+    if !is_stdin(path) {
+        return Ok(Box::new(BufReader::new(
+            File::open(path).map_err(|e| Error::io(path, e))?,
+        )));
+    }
+    static STDIN: OnceLock<Vec<u8>> = OnceLock::new();
+    let bytes = match STDIN.get() {
+        Some(bytes) => bytes,
+        None => {
+            let mut bytes = Vec::new();
+            std::io::stdin()
+                .lock()
+                .read_to_end(&mut bytes)
+                .map_err(|e| Error::io("<stdin>", e))?;
+            STDIN.get_or_init(|| bytes)
+        }
+    };
+    Ok(Box::new(bytes.as_slice()))
+}
+
+/// Whether the estimates at `path` are JSON: by the name, or for standard input by the first
+/// character that is not white space.
+fn is_json(path: &Path) -> Result<bool> {
+    if !is_stdin(path) {
+        return Ok(path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json")));
+    }
+    let mut first = [0u8];
+    let mut input = open(path)?;
+    while input
+        .read(&mut first)
+        .map_err(|e| Error::io("<stdin>", e))?
+        == 1
+    {
+        if !first[0].is_ascii_whitespace() {
+            return Ok(first[0] == b'{');
+        }
+    }
+    Ok(false)
 }
 
 /// The header and the chain length `N` of a per-`(t, i)` CSV: `N` is the number of rows of
@@ -152,6 +212,8 @@ pub struct EstimatesFile {
     pub n: usize,
     /// Chain length `N`.
     pub subsystems: usize,
+    /// What the rows hold, when the file says (the JSON's metadata).
+    kind: Option<EstimateKind>,
 }
 
 impl EstimatesFile {
@@ -167,10 +229,7 @@ impl EstimatesFile {
                 ),
             })
         };
-        if path
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
-        {
+        if is_json(path)? {
             let doc: EstimatesDocument =
                 serde_json::from_reader(open(path)?).map_err(|e| {
                     Error::json(
@@ -202,6 +261,7 @@ impl EstimatesFile {
                 columns,
                 n: columns.n,
                 subsystems,
+                kind: Some(doc.metadata.options.output),
             });
         }
         let (header, subsystems) = probe_csv(path)?;
@@ -216,7 +276,20 @@ impl EstimatesFile {
             columns,
             n: columns.n,
             subsystems,
+            kind: None,
         })
+    }
+
+    /// Refuses to score these estimates against a truth when they are predicted ones
+    /// (`x̂(t+1|t)` on row `t`, which the JSON's metadata says; a CSV does not say).
+    pub fn check_against_truth(&self) -> Result<()> {
+        if self.kind != Some(EstimateKind::Predicted) {
+            return Ok(());
+        }
+        Err(Error::Usage(format!(
+            "{}: predicted estimates (estimate --predicted: x̂(t+1|t) on row t) would be one step off against --truth; plot filtered or smoothed estimates, or leave --truth out",
+            self.name
+        )))
     }
 
     /// The file name used in messages.

@@ -7,6 +7,7 @@
 //! `null` where undefined), a third panel draws it against time. For `evaluate --sweep-p`: RMSE
 //! and ANEES against the arrival probability `p`, one curve per filter.
 
+use std::io::Read;
 use std::ops::Range;
 use std::path::Path;
 
@@ -18,6 +19,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use serde::Deserialize;
 use serde::de::IgnoredAny;
 
+use super::data::file_name;
 use super::{
     Area, CAPTION_SIZE, DESC_SIZE, GREY, GRID, LABEL_SIZE, Swatch, TITLE_SIZE, WIDTH, commit_svg,
     decade_range, draw_centered, draw_legend, fmt_tick, font, header_height, legend_lines,
@@ -67,8 +69,11 @@ pub fn run(input: &Path, out: &Path) -> Result<()> {
 }
 
 fn read(path: &Path) -> Result<EvaluationFile> {
-    let name = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let name = super::data::display_name(path);
+    let mut text = String::new();
+    super::data::open(path)?
+        .read_to_string(&mut text)
+        .map_err(|e| Error::io(&name, e))?;
     let not_eval = |what: String| Error::File {
         file: name.clone(),
         msg: format!("not the JSON of `sisfilt evaluate --out`: {what}"),
@@ -100,13 +105,6 @@ fn read(path: &Path) -> Result<EvaluationFile> {
         }
         (None, None) => Err(not_eval("it has neither `filters` nor `sweep_p`".into()).into()),
     }
-}
-
-fn file_name(path: &Path) -> String {
-    path.file_name().map_or_else(
-        || path.display().to_string(),
-        |f| f.to_string_lossy().into(),
-    )
 }
 
 /// Renders the figure of an evaluation or a sweep.

@@ -16,7 +16,9 @@ use std::path::PathBuf;
 use anyhow::Result;
 use plotters::prelude::*;
 
-use super::data::{EstimatesFile, TruthFile, drawable_error, ends_early, one_based, same_chain};
+use super::data::{
+    EstimatesFile, TruthFile, drawable_error, ends_early, file_name, one_based, same_chain,
+};
 use super::{
     Area, DESC_SIZE, LABEL_SIZE, TITLE_SIZE, WIDTH, commit_svg, draw_centered, draw_label,
     fmt_tick, font, open_output,
@@ -84,6 +86,7 @@ pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
     };
     let mut truth = TruthFile::open(truth_path)?;
     let mut est = EstimatesFile::open(&args.estimates)?;
+    est.check_against_truth()?;
     let truth_name = truth.reader.name().to_string();
     let (n, big_n) = (truth.n, truth.subsystems);
     same_chain((est.name(), est.subsystems), (&truth_name, big_n))?;
@@ -142,14 +145,8 @@ pub fn read(args: &HeatmapPlot) -> Result<ErrorMap> {
             Quantity::NormalisedError
         },
         values,
-        estimates: short_name(&args.estimates, &est),
+        estimates: file_name(&args.estimates),
     })
-}
-
-/// The file name of the estimates, for the title.
-fn short_name(path: &std::path::Path, est: &EstimatesFile) -> String {
-    path.file_name()
-        .map_or_else(|| est.name().to_string(), |f| f.to_string_lossy().into())
 }
 
 /// Without a truth: `√NIS` of every `(t, i)` from the estimates' `nis` column.
@@ -177,7 +174,7 @@ fn read_innovations(args: &HeatmapPlot) -> Result<ErrorMap> {
         state: args.state,
         quantity: Quantity::Innovation,
         values,
-        estimates: short_name(&args.estimates, &est),
+        estimates: file_name(&args.estimates),
     })
 }
 

@@ -22,7 +22,8 @@ use plotters::prelude::*;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 use super::data::{
-    EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, one_based, same_chain,
+    EstimatesFile, MeasurementFile, TruthFile, drawable_error, ends_early, file_name, one_based,
+    same_chain,
 };
 use super::{
     Area, CAPTION_SIZE, DESC_SIZE, ESTIMATE, GREY, GRID, LABEL_SIZE, LOST, MEASURED, SMOOTHED,
@@ -131,13 +132,6 @@ pub fn run(args: &SeriesPlot) -> Result<()> {
     commit_svg(out, &svg)
 }
 
-fn file_name(path: &Path) -> String {
-    path.file_name().map_or_else(
-        || path.display().to_string(),
-        |f| f.to_string_lossy().into(),
-    )
-}
-
 /// Reads the files of `args` in lock-step and keeps subsystem `i`, state `k`.
 pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
     let mut truth = args.truth.as_deref().map(TruthFile::open).transpose()?;
@@ -152,6 +146,12 @@ pub fn read(args: &SeriesPlot) -> Result<SeriesData> {
         .as_deref()
         .map(MeasurementFile::open)
         .transpose()?;
+    if truth.is_some() {
+        est.check_against_truth()?;
+        smooth
+            .as_ref()
+            .map_or(Ok(()), EstimatesFile::check_against_truth)?;
+    }
     // The file the others are checked against: the truth, else the estimates.
     let (ref_name, n, big_n) = match &truth {
         Some(t) => (t.reader.name().to_string(), t.n, t.subsystems),

@@ -14,6 +14,7 @@ mod config_errors;
 mod estimate_cli;
 mod estimator;
 mod evaluate_cli;
+mod flags;
 mod gaps;
 mod innovations;
 mod joint_filter;

@@ -462,7 +462,8 @@ fn run_json_records_seed_version_and_whole_config() {
 
 #[test]
 fn no_inputs_file_without_inputs() {
-    let text = small_config(3, 4, 1, "0.7")
+    let with_inputs = small_config(3, 4, 1, "0.7");
+    let text = with_inputs[..with_inputs.find("[input]").unwrap()]
         .replace("C = [[0.0], [1.0]]\n", "")
         .replace("R = [[0.5]]\n", "");
     let s = setup(&text);
