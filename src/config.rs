@@ -46,20 +46,78 @@ pub struct RawInterconnection {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawModel {
+    #[serde(deserialize_with = "matrix")]
     pub A: RawMatrix,
-    pub B: RawMatrix,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Zero when left out, which only a chain without coupling allows (`n⁺ + n⁻ = 0` or
+    /// `N = 1`); the same for `D`.
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub B: Option<RawMatrix>,
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub C: Option<RawMatrix>,
-    pub D: RawMatrix,
-    pub G: RawMatrix,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub D: Option<RawMatrix>,
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub G: Option<RawMatrix>,
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub H: Option<RawMatrix>,
+    #[serde(deserialize_with = "matrix")]
     pub J: RawMatrix,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub R: Option<RawMatrix>,
+    #[serde(deserialize_with = "matrix")]
     pub M: RawMatrix,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub Q: Option<RawMatrix>,
+}
+
+/// A matrix as the TOML writes it: a list of rows, or a number for a `1 × 1` matrix.
+fn matrix<'de, D: serde::Deserializer<'de>>(de: D) -> Result<RawMatrix, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Written {
+        Number(f64),
+        Rows(RawMatrix),
+    }
+    match Written::deserialize(de) {
+        Ok(Written::Number(x)) => Ok(vec![vec![x]]),
+        Ok(Written::Rows(rows)) => Ok(rows),
+        Err(_) => Err(serde::de::Error::custom(
+            "expected a matrix as a list of rows of numbers, [[…], …], or a number for a 1 × 1 matrix",
+        )),
+    }
+}
+
+/// [`matrix`] of a key that may be left out.
+fn optional_matrix<'de, D: serde::Deserializer<'de>>(de: D) -> Result<Option<RawMatrix>, D::Error> {
+    matrix(de).map(Some)
 }
 
 /// `[dropout]`: the arrival probability `p`, one value or one per subsystem.
@@ -117,6 +175,7 @@ impl<'de> Deserialize<'de> for RawProbability {
 pub struct RawInitial {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mean: Option<Vec<f64>>,
+    #[serde(deserialize_with = "matrix")]
     pub cov: RawMatrix,
 }
 
@@ -145,33 +204,138 @@ pub enum InputKind {
     File,
 }
 
-/// One `[[override]]` table: parameters that apply on a rectangle of `(t, i)`.
+/// Where an override applies along one axis: one inclusive range `[first, last]`, or a list
+/// of them, `[[1, 1], [11, 11], [21, 30]]`. A flat list of any other length is refused: it
+/// would read as a range by its first two numbers.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[serde(untagged)]
+pub enum RawRanges {
+    Range([i64; 2]),
+    List(Vec<[i64; 2]>),
+}
+
+impl RawRanges {
+    /// The ranges, in the order written.
+    pub fn ranges(&self) -> &[[i64; 2]] {
+        match self {
+            RawRanges::Range(r) => std::slice::from_ref(r),
+            RawRanges::List(list) => list,
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for RawRanges {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> Result<Self, D::Error> {
+        use serde::de::Error as _;
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Item {
+            Number(i64),
+            Range(Vec<i64>),
+        }
+        const EXPECTED: &str = "expected [first, last], or a list of ranges [[first, last], …] (several single ones: [[1, 1], [11, 11], [21, 21]])";
+        let items = Vec::<Item>::deserialize(de)
+            .map_err(|_| D::Error::custom(format!("{EXPECTED}, of integers")))?;
+        let numbers: Vec<i64> = items
+            .iter()
+            .filter_map(|i| match i {
+                Item::Number(v) => Some(*v),
+                Item::Range(_) => None,
+            })
+            .collect();
+        if numbers.len() == items.len() {
+            return match numbers[..] {
+                [first, last] => Ok(RawRanges::Range([first, last])),
+                _ => Err(D::Error::custom(format!(
+                    "{EXPECTED}, found a list of {} numbers",
+                    numbers.len()
+                ))),
+            };
+        }
+        items
+            .into_iter()
+            .map(|i| match i {
+                Item::Range(r) if r.len() == 2 => Ok([r[0], r[1]]),
+                Item::Range(r) => Err(D::Error::custom(format!(
+                    "{EXPECTED}, found a range of {} numbers",
+                    r.len()
+                ))),
+                Item::Number(_) => Err(D::Error::custom(format!(
+                    "{EXPECTED}, found numbers and ranges mixed"
+                ))),
+            })
+            .collect::<Result<Vec<_>, _>>()
+            .map(RawRanges::List)
+    }
+}
+
+/// One `[[override]]` table: parameters that apply on rectangles of `(t, i)`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawOverride {
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub subsystems: Option<[i64; 2]>,
+    pub subsystems: Option<RawRanges>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub steps: Option<[i64; 2]>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps: Option<RawRanges>,
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub A: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub B: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub C: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub D: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub G: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub H: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub J: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub R: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub M: Option<RawMatrix>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        deserialize_with = "optional_matrix",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub Q: Option<RawMatrix>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub p: Option<f64>,
@@ -296,6 +460,28 @@ impl ConfigSetting {
     }
 }
 
+/// The key of a deserialisation error's path as messages name keys (`model.Q`,
+/// `override[2].p`: overrides from 1), without the position inside a value; `None` at the top.
+fn key_of(path: &serde_path_to_error::Path) -> Option<String> {
+    use serde_path_to_error::Segment;
+    let mut key = String::new();
+    for segment in path.iter() {
+        match segment {
+            Segment::Map { key: name } | Segment::Enum { variant: name } => {
+                if !key.is_empty() {
+                    key.push('.');
+                }
+                key.push_str(name);
+            }
+            // Only `[[override]]` is a list of tables; inside a value, the key is enough.
+            Segment::Seq { index } if key == "override" => key += &format!("[{}]", index + 1),
+            Segment::Seq { .. } => break,
+            Segment::Unknown => {}
+        }
+    }
+    (!key.is_empty()).then_some(key)
+}
+
 /// A config as read from its source: the parsed tables plus where it came from.
 #[derive(Debug, Clone)]
 pub struct ConfigSource {
@@ -332,9 +518,10 @@ impl ConfigSource {
         Self::from_text(name, dir, text)
     }
 
-    /// Parses TOML text; `name` appears in every message.
+    /// Parses TOML text; `name` appears in every message, with the line and, for a value of
+    /// the wrong type, its key.
     pub fn from_text(name: &str, dir: PathBuf, text: String) -> Result<Self> {
-        let raw: RawConfig = toml::from_str(&text).map_err(|e| {
+        let syntax = |e: &toml::de::Error, key: Option<String>| {
             let line = e
                 .span()
                 .map(|s| text[..s.start.min(text.len())].lines().count().max(1))
@@ -346,11 +533,27 @@ impl ConfigSource {
                 }
                 _ => line,
             };
+            let msg = e.message().trim().replace('\n', " ");
             Error::ConfigSyntax {
                 file: name.to_string(),
                 line,
-                msg: e.message().trim().replace('\n', " "),
+                msg: match key {
+                    Some(key) => format!("{key}: {msg}"),
+                    None => msg,
+                },
             }
+        };
+        let de = toml::Deserializer::parse(&text).map_err(|e| syntax(&e, None))?;
+        let raw: RawConfig = serde_path_to_error::deserialize(de).map_err(|e| {
+            // An unknown key is named by the message: the key is the table it sits in.
+            let key = key_of(e.path()).and_then(|key| {
+                if e.inner().message().starts_with("unknown field") {
+                    key.rsplit_once('.').map(|(table, _)| table.to_string())
+                } else {
+                    Some(key)
+                }
+            });
+            syntax(e.inner(), key)
         })?;
         Ok(Self {
             name: name.to_string(),
@@ -381,8 +584,11 @@ impl ConfigSource {
             };
             setting.apply(&mut table).map_err(refused)?;
             // Read back after each, so that a value of the wrong type names its own key.
-            self.raw = toml::Table::try_into(table.clone())
-                .map_err(|e: toml::de::Error| refused(e.message().trim().replace('\n', " ")))?;
+            self.raw = serde_path_to_error::deserialize(table.clone()).map_err(
+                |e: serde_path_to_error::Error<toml::de::Error>| {
+                    refused(e.inner().message().trim().replace('\n', " "))
+                },
+            )?;
             self.settings.push(setting.clone());
         }
         Ok(self)

@@ -14,6 +14,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::config::{
     ConfigSetting, ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability,
+    RawRanges,
 };
 use crate::error::Result;
 
@@ -234,18 +235,23 @@ fn override_matrix<'a>(o: &'a RawOverride, key: &str) -> Option<&'a RawMatrix> {
     }
 }
 
-/// A validated override: where it applies and what it sets.
+/// A validated override: where it applies (inclusive ranges of steps and of subsystems; all
+/// of them when `None`) and what it sets.
 struct Override {
-    subsystems: Option<(usize, usize)>,
-    steps: Option<(usize, usize)>,
+    subsystems: Option<Vec<(usize, usize)>>,
+    steps: Option<Vec<(usize, usize)>>,
     matrices: Vec<(&'static str, DMatrix<f64>)>,
     p: Option<f64>,
 }
 
 impl Override {
     fn applies(&self, t: usize, i: usize) -> bool {
-        self.steps.is_none_or(|(a, b)| a <= t && t <= b)
-            && self.subsystems.is_none_or(|(a, b)| a <= i && i <= b)
+        let within = |ranges: &Option<Vec<(usize, usize)>>, x: usize| {
+            ranges
+                .as_ref()
+                .is_none_or(|rs| rs.iter().any(|&(a, b)| a <= x && x <= b))
+        };
+        within(&self.steps, t) && within(&self.subsystems, i)
     }
 }
 
@@ -338,6 +344,17 @@ impl Model {
             ));
         }
 
+        // B and D carry the coupling: left out, they are zero only where there is none.
+        if dims.s() > 0 && subsystems > 1 {
+            for (key, given) in [("B", rm.B.is_some()), ("D", rm.D.is_some())] {
+                if !given {
+                    return Err(c.err(
+                        &format!("model.{key}"),
+                        "required: the subsystems are coupled (interconnection.plus + minus > 0 and N > 1); only C, G, H, R and Q are zero when left out",
+                    ));
+                }
+            }
+        }
         let matrix = |key: &'static str, raw_m: Option<&RawMatrix>, prefix: &str| {
             let (r, cols, what) = expected_shape(&dims, key);
             match raw_m {
@@ -347,10 +364,10 @@ impl Model {
         };
         let base = Params {
             A: matrix("A", Some(&rm.A), "model.")?,
-            B: matrix("B", Some(&rm.B), "model.")?,
+            B: matrix("B", rm.B.as_ref(), "model.")?,
             C: matrix("C", rm.C.as_ref(), "model.")?,
-            D: matrix("D", Some(&rm.D), "model.")?,
-            G: matrix("G", Some(&rm.G), "model.")?,
+            D: matrix("D", rm.D.as_ref(), "model.")?,
+            G: matrix("G", rm.G.as_ref(), "model.")?,
             H: matrix("H", rm.H.as_ref(), "model.")?,
             J: matrix("J", Some(&rm.J), "model.")?,
             R: matrix("R", rm.R.as_ref(), "model.")?,
@@ -413,15 +430,19 @@ impl Model {
                     matrices.push((key, mat));
                 }
             }
+            let ranges = |key: &str, raw: &Option<RawRanges>, max: Option<usize>| {
+                raw.as_ref()
+                    .map(|r| {
+                        r.ranges()
+                            .iter()
+                            .map(|&r| c.range(&format!("{prefix}{key}"), r, max))
+                            .collect::<Result<Vec<_>>>()
+                    })
+                    .transpose()
+            };
             overrides.push(Override {
-                subsystems: o
-                    .subsystems
-                    .map(|r| c.range(&format!("{prefix}subsystems"), r, Some(subsystems)))
-                    .transpose()?,
-                steps: o
-                    .steps
-                    .map(|r| c.range(&format!("{prefix}steps"), r, None))
-                    .transpose()?,
+                subsystems: ranges("subsystems", &o.subsystems, Some(subsystems))?,
+                steps: ranges("steps", &o.steps, None)?,
                 matrices,
                 p: o.p
                     .map(|p| c.probability(&format!("{prefix}p"), p))
@@ -494,7 +515,7 @@ impl Model {
     ) -> (Vec<Params>, Vec<Window>) {
         let mut starts = vec![1usize];
         for o in overrides {
-            if let Some((a, b)) = o.steps {
+            for &(a, b) in o.steps.iter().flatten() {
                 starts.push(a);
                 starts.push(b.saturating_add(1));
             }

@@ -11,6 +11,7 @@ mod bad_inputs;
 mod band;
 mod check_cli;
 mod config_errors;
+mod config_forms;
 mod estimate_cli;
 mod estimator;
 mod evaluate_cli;

@@ -187,7 +187,7 @@ fn a_bad_setting_names_its_key_and_says_it_came_from_set() {
         ("dropout.q=0.7", "dropout.q (from --set): unknown field `q`"),
         (
             "model.M=\"large\"",
-            "model.M (from --set): invalid type: string \"large\"",
+            "model.M (from --set): expected a matrix as a list of rows of numbers",
         ),
         (
             "model.M=[[0.02]]",
