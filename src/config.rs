@@ -339,6 +339,10 @@ pub struct RawOverride {
     pub Q: Option<RawMatrix>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub p: Option<f64>,
+    /// `false`: these subsystems have no sensor (docs/theory.md §15): `simulate` leaves their
+    /// measurements empty and every filter takes them as gaps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured: Option<bool>,
 }
 
 /// One config value given beside the file (`--set KEY=VALUE`, docs/theory.md §13): the key

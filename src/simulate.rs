@@ -105,6 +105,12 @@ pub fn simulate(
                 )
             })?;
         }
+        // A subsystem without a sensor: no measurement, and none arrived. Its draws were made
+        // all the same, so that the others' values do not depend on it.
+        model.blank_unmeasured(t, &mut y);
+        for (g, measured) in gamma.iter_mut().zip(&window.measured) {
+            *g &= *measured;
+        }
         sink(&SimStep {
             t,
             x: &x,

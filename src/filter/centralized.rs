@@ -339,7 +339,7 @@ impl CentralizedSchedule {
     /// Runs the covariance pass for the given inputs (`u[t]`, `N·m` values per step).
     pub fn new(model: &Model, u: &[Vec<f64>], max_lifted: usize) -> Result<Self> {
         let mut filter = CentralizedFilter::new(model, false, max_lifted)?;
-        let y = vec![0.0; model.subsystems * model.dims.q];
+        let mut y = vec![0.0; model.subsystems * model.dims.q];
         let mut sched = Self {
             model: model.clone(),
             gains: Vec::with_capacity(u.len()),
@@ -348,7 +348,10 @@ impl CentralizedSchedule {
             systems: Vec::new(),
             system_of_step: Vec::with_capacity(u.len()),
         };
-        for ut in u {
+        for (t0, ut) in u.iter().enumerate() {
+            // The rows of subsystems without a sensor are left out of the gains too.
+            y.fill(0.0);
+            model.blank_unmeasured(t0 + 1, &mut y);
             filter.step(&y, ut)?;
             if sched
                 .systems
@@ -404,8 +407,12 @@ impl ChainFilter for ScheduledCentralized<'_> {
                 "the centralized schedule ends before t = {t}"
             )));
         }
-        super::refuse_gaps(y, t, "the centralized filter's schedule")?;
+        super::refuse_gaps(model, y, t, "the centralized filter's schedule")?;
         nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
+        // A row without a sensor has a zero gain and no innovation (NaN).
+        for v in self.innov.iter_mut().filter(|v| v.is_nan()) {
+            *v = 0.0;
+        }
         let size = big_n * n;
         let w = &self.sched.gains[k];
         let mut xf = nalgebra::DVectorViewMut::from_slice(&mut self.x_filt, size);

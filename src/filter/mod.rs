@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::choice::{Choice, Variant};
 use crate::interconnect::SolverKind;
 use crate::linalg::band::SymBand;
+use crate::model::Model;
 
 pub use centralized::{CentralizedFilter, CentralizedSchedule, ScheduledCentralized};
 pub use joint::{JointFilter, JointOptions};
@@ -72,10 +73,12 @@ pub fn check_estimates(t: usize, n: usize, x: &[f64], p: &[f64]) -> Result<()> {
 }
 
 /// A covariance pass stored once and replayed (`evaluate`'s schedules) holds the gains of
-/// complete measurements: a step with a row not in the data (docs/theory.md §15) needs its
-/// own, so `what` refuses it.
-pub(crate) fn refuse_gaps(y: &[f64], t: usize, what: &str) -> Result<()> {
-    match y.iter().position(|v| v.is_nan()) {
+/// the measurements the model has (all but those of subsystems without a sensor): a step with
+/// another row not in the data (docs/theory.md §15) needs its own, so `what` refuses it.
+pub(crate) fn refuse_gaps(model: &Model, y: &[f64], t: usize, what: &str) -> Result<()> {
+    let q = model.dims.q;
+    let measured = &model.window(t).measured;
+    match (0..y.len()).position(|k| y[k].is_nan() && measured[k / q]) {
         Some(_) => Err(Error::Usage(format!(
             "{what} was computed for measurements without gaps, and t = {t} has one; run the filter itself"
         ))),

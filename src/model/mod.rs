@@ -145,6 +145,9 @@ pub struct Window {
     pub ids: Vec<u32>,
     /// For each subsystem (0-based), the arrival probability `p(t,i)`.
     pub p: Vec<f64>,
+    /// For each subsystem (0-based), whether it has a sensor (an override's `measured =
+    /// false` says it has none: its measurements are gaps, docs/theory.md §15).
+    pub measured: Vec<bool>,
 }
 
 /// The validated model, built once by [`Model::from_config`] (or [`Model::from_raw`]): a handle
@@ -242,6 +245,7 @@ struct Override {
     steps: Option<Vec<(usize, usize)>>,
     matrices: Vec<(&'static str, DMatrix<f64>)>,
     p: Option<f64>,
+    measured: Option<bool>,
 }
 
 impl Override {
@@ -447,6 +451,7 @@ impl Model {
                 p: o.p
                     .map(|p| c.probability(&format!("{prefix}p"), p))
                     .transpose()?,
+                measured: o.measured,
             });
         }
         let (params, windows) = Self::build_windows(base, &base_p, &overrides, subsystems);
@@ -529,10 +534,18 @@ impl Model {
         for &first in &starts {
             let mut ids = Vec::with_capacity(subsystems);
             let mut p = Vec::with_capacity(subsystems);
+            let mut measured = Vec::with_capacity(subsystems);
             for i in 1..=subsystems {
                 let applied: Vec<usize> = (0..overrides.len())
                     .filter(|&k| overrides[k].applies(first, i))
                     .collect();
+                measured.push(
+                    applied
+                        .iter()
+                        .rev()
+                        .find_map(|&k| overrides[k].measured)
+                        .unwrap_or(true),
+                );
                 p.push(
                     applied
                         .iter()
@@ -557,8 +570,13 @@ impl Model {
                 ids.push(id);
             }
             match windows.last() {
-                Some(w) if w.ids == ids && w.p == p => {}
-                _ => windows.push(Window { first, ids, p }),
+                Some(w) if w.ids == ids && w.p == p && w.measured == measured => {}
+                _ => windows.push(Window {
+                    first,
+                    ids,
+                    p,
+                    measured,
+                }),
             }
         }
         (params, windows)
@@ -576,6 +594,21 @@ impl Model {
     /// The index of the window holding time step `t` (1-based).
     pub fn window_index(&self, t: usize) -> usize {
         self.windows.partition_point(|w| w.first <= t) - 1
+    }
+
+    /// Sets the measurements `y(t, ·)` (`N·q` values) of the subsystems without a sensor at
+    /// `t` to NaN: whatever a file holds there, no sensor measured it (docs/theory.md §15).
+    pub fn blank_unmeasured(&self, t: usize, y: &mut [f64]) {
+        let q = self.dims.q;
+        for (i, _) in self
+            .window(t)
+            .measured
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| !**m)
+        {
+            y[i * q..(i + 1) * q].fill(f64::NAN);
+        }
     }
 
     /// The window holding time step `t`.

@@ -237,6 +237,7 @@ fn run_filter(
     let mut timings = Timings::default();
     let mut check = innovation_check(model, spec);
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
+        model.blank_unmeasured(t, &mut y);
         timings.filter(|| {
             let (mean, cov) = filter.predicted();
             check.step(t, mean, cov, &y, &u)?;
@@ -316,6 +317,7 @@ fn run_smoother(
     let mut steps = 0;
     let mut timings = Timings::default();
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
+        model.blank_unmeasured(t, &mut y);
         let need = memory_bytes(model, kind, t);
         if need > limit {
             return Err(RunError::OverMaxMemory { t, need, limit }.into());

@@ -366,3 +366,110 @@ fn gaps_on_the_command_line() {
         "car3.svg",
     ]);
 }
+
+/// Subsystems without a sensor (`measured = false`): `simulate` leaves their cells empty and
+/// draws everything else as it would with a sensor there; every filter takes them as gaps, so
+/// a run of that model on complete data equals a run of the model with sensors on data with
+/// those cells empty — estimates, covariances and the log-likelihood (which their noise no
+/// longer enters) — and `evaluate` replays its covariance passes with them.
+#[test]
+fn subsystems_without_a_sensor_are_gaps() {
+    let unmeasured = |t: usize, i: usize| (i == 2 || i == 4) && (5..=12).contains(&t) || i == 1;
+    let without = format!(
+        "{}\n[[override]]\nsubsystems = [[2, 2], [4, 4]]\nsteps = [5, 12]\nmeasured = false\n\n[[override]]\nsubsystems = [1, 1]\nmeasured = false\n",
+        homogeneous_chain()
+    );
+    let (with_model, without_model) = (model_from(&homogeneous_chain()), model_from(&without));
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let config = write_file(dir, "without.toml", &without);
+    let with_config = write_file(dir, "with.toml", &homogeneous_chain());
+    for (path, out) in [(&config, "without"), (&with_config, "with")] {
+        sisfilt()
+            .args(["-q", "simulate"])
+            .arg(path)
+            .args(["--out", out])
+            .current_dir(dir)
+            .assert()
+            .success();
+    }
+    // The same draws: the cells of the subsystems with a sensor are the same, the others empty.
+    let (a, b) = (
+        Csv::read(&dir.join("without/measurements.csv")),
+        Csv::read(&dir.join("with/measurements.csv")),
+    );
+    let (ta, tb) = (
+        Csv::read(&dir.join("without/truth.csv")),
+        Csv::read(&dir.join("with/truth.csv")),
+    );
+    for (k, (ra, rb)) in a.rows.iter().zip(&b.rows).enumerate() {
+        let (t, i): (usize, usize) = (ra[0].parse().unwrap(), ra[1].parse().unwrap());
+        if unmeasured(t, i) {
+            assert!(ra[2..].iter().all(String::is_empty), "{ra:?}");
+            assert_eq!(ta.rows[k].last().unwrap(), "0");
+        } else {
+            assert_eq!(ra, rb);
+            assert_eq!(ta.rows[k], tb.rows[k]);
+        }
+    }
+    // Filters: the model without sensors on complete data, the model with them on the data
+    // with those cells empty.
+    let sim = simulate_run(&with_model, 5);
+    let u: Vec<f64> = sim.u.concat();
+    let (q, big_n) = (2, 4);
+    let y: Vec<f64> = sim.y.concat();
+    let y_gap: Vec<f64> = y
+        .iter()
+        .enumerate()
+        .map(|(k, &v)| {
+            if unmeasured(k / (big_n * q) + 1, k / q % big_n + 1) {
+                f64::NAN
+            } else {
+                v
+            }
+        })
+        .collect();
+    for spec in specs() {
+        let what = format!("{spec:?}");
+        let (a, b) = (
+            run(&without_model, &spec, &y, &u),
+            run(&with_model, &spec, &y_gap, &u),
+        );
+        assert_values(&a.x, &b.x, &format!("x of {what}"));
+        assert_values(&a.p, &b.p, &format!("P of {what}"));
+        assert_values(&a.nis, &b.nis, &format!("NIS of {what}"));
+        let (la, lb) = (a.report.summary.loglik, b.report.summary.loglik);
+        assert_eq!(la.is_some(), lb.is_some(), "{what}");
+        if let (Some(la), Some(lb)) = (la, lb) {
+            assert_values(&[la], &[lb], &format!("loglik of {what}"));
+        }
+    }
+    // evaluate: the replayed covariance passes (joint, centralized) take the missing sensors.
+    let out = sisfilt()
+        .current_dir(dir)
+        .args([
+            "evaluate",
+            "without.toml",
+            "--runs",
+            "2",
+            "--out",
+            "ev.json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let ev: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("ev.json")).unwrap()).unwrap();
+    for f in ev["filters"].as_array().unwrap() {
+        assert!(f["skipped"].is_null(), "{}: {}", f["name"], f["skipped"]);
+        assert!(
+            f["accuracy"]["rmse_overall"].as_f64().unwrap().is_finite(),
+            "{}",
+            f["name"]
+        );
+    }
+}

@@ -297,6 +297,7 @@ fn model_in_code(m: f64) -> sisfilt::config::RawConfig {
             M: Some(vec![vec![0.2]]),
             Q: None,
             p: None,
+            measured: None,
         }],
     }
 }

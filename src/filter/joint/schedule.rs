@@ -49,9 +49,12 @@ impl JointSchedule {
         let mut filter = JointFilter::new(model, opts)?;
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
         filter.recorded_gains = Some(vec![0.0; big_n * q * n]);
-        let y = vec![0.0; big_n * q];
+        let mut y = vec![0.0; big_n * q];
         let mut steps = Vec::with_capacity(u.len());
-        for ut in u {
+        for (t0, ut) in u.iter().enumerate() {
+            // The rows of subsystems without a sensor are left out of the gains too.
+            y.fill(0.0);
+            model.blank_unmeasured(t0 + 1, &mut y);
             filter.step(&y, ut)?;
             steps.push(ScheduledStep {
                 chol: filter.chol.clone_for_solves(),
@@ -108,13 +111,17 @@ impl ChainFilter for ScheduledJoint<'_> {
                 "the joint filter's schedule ends before t = {t}"
             )));
         };
-        crate::filter::refuse_gaps(y, t, "the joint filter's schedule")?;
+        crate::filter::refuse_gaps(model, y, t, "the joint filter's schedule")?;
         nahi::chain_innovations(model, t, y, u, &self.x_pred, &mut self.innov);
         for i in 0..model.subsystems {
             let w = &step.gains[i * q * n..(i + 1) * q * n];
             let innov = &self.innov[i * q..(i + 1) * q];
             for c in 0..n {
-                self.r[i * n + c] = (0..q).map(|k| w[c * q + k] * innov[k]).sum();
+                // A row without a sensor has a zero gain and no innovation (NaN).
+                self.r[i * n + c] = (0..q)
+                    .filter(|&k| !innov[k].is_nan())
+                    .map(|k| w[c * q + k] * innov[k])
+                    .sum();
             }
         }
         step.chol.solve_in_place(&mut self.r);
