@@ -42,6 +42,30 @@ ln -s "$repo/configs" configs
 "$sisfilt" plot series --estimates run/joint.csv --smoothed run/joint_smooth.csv \
     --truth run/truth.csv --subsystem 5 --state 1 --out run/smoothed.svg
 
+# The README's evaluate tables: 500 runs of each shipped config, each table (and its notes)
+# written between its markers.
+for cfg in platoon heat_rod paper; do
+    "$sisfilt" -q evaluate "configs/$cfg.toml" --runs 500 > "run/eval_$cfg.txt"
+    awk '/^filter /{on=1} on==1 && /^$/{on=2} on==1 || /^note: /{print}' "run/eval_$cfg.txt" \
+        > "run/table_$cfg.txt"
+done
+awk -v dir=run '
+    /^<!-- evaluate configs\/[a-z_]+\.toml -->$/ {
+        print
+        name = $3
+        sub(/^configs\//, "", name)
+        sub(/\.toml$/, "", name)
+        print "```text"
+        while ((getline line < (dir "/table_" name ".txt")) > 0) print line
+        print "```"
+        skip = 1
+        next
+    }
+    /^<!-- end evaluate -->$/ { skip = 0 }
+    !skip { print }
+' "$repo/README.md" > README.new
+cat README.new > "$repo/README.md"
+
 cp run/series.svg rod/heatmap.svg rod/mixture.svg run/evaluate.svg run/sweep.svg run/paper_nees.svg \
     run/smoothed.svg "$repo/docs/"
-echo "wrote docs/series.svg docs/heatmap.svg docs/mixture.svg docs/evaluate.svg docs/sweep.svg docs/paper_nees.svg docs/smoothed.svg"
+echo "wrote README.md's evaluate tables and docs/series.svg docs/heatmap.svg docs/mixture.svg docs/evaluate.svg docs/sweep.svg docs/paper_nees.svg docs/smoothed.svg"

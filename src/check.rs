@@ -84,6 +84,22 @@ impl ModelCheck {
     }
 }
 
+/// What a spectral radius `ρ ≥ 1` of `A_eff` means for the chain and the filters
+/// (docs/theory.md §3), for a warning: `ρ = 1` (to 1e−9) is a marginally stable chain whose
+/// second moment grows linearly in `t`, `ρ > 1` an unstable one whose moment grows
+/// exponentially.
+pub fn instability(spectral_radius: f64) -> String {
+    if (spectral_radius - 1.0).abs() <= 1e-9 {
+        format!(
+            "the spectral radius of A_eff is {spectral_radius:.6} = 1: the chain is marginally stable, its second moment S grows linearly in t (as a random walk's), and the unknown-dropout filter's R_eff = M + p(1−p) J S Jᵀ with it, so its gain slowly fades (docs/theory.md §3)"
+        )
+    } else {
+        format!(
+            "the spectral radius of A_eff is {spectral_radius:.6} > 1: the chain is unstable, its second moment grows exponentially, and the unknown-dropout filter diverges (docs/theory.md §3)"
+        )
+    }
+}
+
 /// The figures of `model` (one chain solve and one spectral radius per window).
 pub fn check(model: &Model) -> Result<ModelCheck> {
     let varying = MATRIX_KEYS

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use sisfilt::check::{ModelCheck, WindowCheck, check};
+use sisfilt::check::{ModelCheck, WindowCheck, check, instability};
 use sisfilt::config::ConfigSetting;
 use sisfilt::inputs::InputStream;
 use sisfilt::messages::warn;
@@ -35,9 +35,9 @@ pub fn run(path: &Path, settings: &[ConfigSetting]) -> Result<()> {
     print_line(&report(path, settings, &figures))?;
     for w in figures.unstable_windows() {
         warn(format!(
-            "{}: the spectral radius of A_eff is {:.6} ≥ 1: the chain is not stable, and the unknown-dropout filter diverges (docs/theory.md §3)",
+            "{}: {}",
             span(w),
-            w.spectral_radius.value
+            instability(w.spectral_radius.value)
         ));
     }
     Ok(())

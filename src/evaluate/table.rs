@@ -134,7 +134,7 @@ impl Evaluation {
                 (Some(a), _) => {
                     if !a.rmse_overall.is_finite() {
                         notes.push(format!(
-                            "{}: its estimates overflowed (with --paper this is the transfer solver on a long chain, docs/theory.md §2)",
+                            "{}: its estimates overflowed (for the paper's filter: its transfer solver loses accuracy exponentially along a long chain, docs/theory.md §2)",
                             f.name
                         ));
                     }

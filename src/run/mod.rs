@@ -77,10 +77,9 @@ impl std::fmt::Display for Note {
             Self::OverconfidentDistributedSmoother => f.write_str(
                 "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); filter = joint with smooth is the remedy",
             ),
-            Self::Unstable { spectral_radius } => write!(
-                f,
-                "the spectral radius of A_eff is {spectral_radius:.6} ≥ 1: the unknown-dropout filter diverges on an unstable chain (docs/theory.md §3)"
-            ),
+            Self::Unstable { spectral_radius } => {
+                f.write_str(&crate::check::instability(*spectral_radius))
+            }
             Self::InaccurateTransfer { error, t } => write!(
                 f,
                 "the transfer solver's estimated relative error is {error:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use solver = banded"

@@ -557,3 +557,35 @@ fn missing_inputs_file_message_says_the_cause_once() {
         .max(line.matches(&cause).count());
     assert_eq!(count, 1, "cause repeated: {line}");
 }
+
+/// `check` tells a marginally stable chain (`ρ = 1`: the second moment grows linearly) from an
+/// unstable one (`ρ > 1`: it grows exponentially and the unknown-dropout filter diverges).
+#[test]
+fn stability_warnings_tell_rho_one_from_above_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = |a: f64, b: &str| {
+        format!(
+            "subsystems = 5\nsteps = 10\n[interconnection]\nplus = 1\nminus = 1\n[model]\nA = {a}\nB = {b}\nD = [[0.5], [0.5]]\nJ = 1\nM = 0.05\nQ = 0.01\n[dropout]\np = 0.8\n[initial]\ncov = 1\n"
+        )
+    };
+    for (text, says) in [
+        (
+            config(1.0, "[[0.0, 0.0]]"),
+            "is 1.000000 = 1: the chain is marginally stable, its second moment S grows linearly",
+        ),
+        (
+            config(1.2, "[[0.1, 0.1]]"),
+            "> 1: the chain is unstable, its second moment grows exponentially, and the unknown-dropout filter diverges",
+        ),
+    ] {
+        let path = crate::common::write_file(dir.path(), "c.toml", &text);
+        let out = crate::common::sisfilt()
+            .arg("check")
+            .arg(&path)
+            .output()
+            .unwrap();
+        assert!(out.status.success());
+        let stderr = String::from_utf8(out.stderr).unwrap();
+        assert!(stderr.contains(says), "{stderr}");
+    }
+}

@@ -223,4 +223,20 @@ fn evaluate_notes_name_no_option_of_another_command() {
         note.contains("G22 of subsystem 2 is singular") && !note.contains("--solver"),
         "{note}"
     );
+    // On the long heat rod its transfer solver overflows: said without a flag either.
+    let out = sisfilt()
+        .args(["evaluate"])
+        .arg(shipped_config("heat_rod.toml"))
+        .args(["--runs", "1", "--filters", "distributed-paper"])
+        .output()
+        .unwrap();
+    let table = String::from_utf8(out.stdout).unwrap();
+    let note = table
+        .lines()
+        .find(|l| l.starts_with("note: distributed-paper"))
+        .expect("a note on the failed row");
+    assert!(
+        note.contains("overflowed") && !note.contains("--"),
+        "{note}"
+    );
 }
