@@ -64,6 +64,8 @@ pub struct WindowCheck {
     pub band_tol: f64,
     /// The joint filter's flops per subsystem-step at the default band, with its band moment.
     pub joint_flops: f64,
+    /// The subsystems without a sensor (1-based; an override's `measured = false`).
+    pub unmeasured: Vec<usize>,
 }
 
 /// Bytes the stored forward pass of each smoother takes.
@@ -133,6 +135,9 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
             spectral_radius: spectral_radius(model, w.first, POWER_STEPS)?,
             a_eff_half_width: b,
             band_tol: DEFAULT_BAND_TOL,
+            unmeasured: (1..=model.subsystems)
+                .filter(|&i| !w.measured[i - 1])
+                .collect(),
             joint_flops: flops_per_subsystem_step(
                 model.dims.n,
                 joint_band,

@@ -502,8 +502,15 @@ pub struct ConfigSource {
 }
 
 impl ConfigSource {
-    /// Reads and parses a config file.
+    /// Reads and parses a config file; `-` is standard input (its relative paths resolve
+    /// against the working folder).
     pub fn from_file(path: &Path) -> Result<Self> {
+        if path.as_os_str() == "-" {
+            let mut text = String::new();
+            std::io::Read::read_to_string(&mut std::io::stdin().lock(), &mut text)
+                .map_err(|e| Error::io("<stdin>", e))?;
+            return Self::from_text("<stdin>", PathBuf::from("."), text);
+        }
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let dir = folder_of(path).to_path_buf();
         Self::from_text(&path.display().to_string(), dir, text)

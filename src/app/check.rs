@@ -112,6 +112,14 @@ fn report(path: &Path, settings: &[ConfigSetting], figures: &ModelCheck) -> Stri
             w.band_tol,
             w.joint_flops / 1e3,
         ));
+        if !w.unmeasured.is_empty() {
+            let list: Vec<String> = w.unmeasured.iter().map(ToString::to_string).collect();
+            report.push(format!(
+                "{}: no sensor on subsystems {} (their measurements are gaps)",
+                span(w),
+                list.join(", ")
+            ));
+        }
     }
     if let (Some(memory), Some(steps)) = (&figures.smoother_memory, figures.steps) {
         report.push(format!(

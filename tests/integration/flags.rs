@@ -240,3 +240,39 @@ fn evaluate_notes_name_no_option_of_another_command() {
         "{note}"
     );
 }
+
+/// A config from standard input (`-`) is the config from its file: `check` says the same but
+/// for the name, `simulate` writes the same files.
+#[test]
+fn a_config_can_come_from_standard_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let config = shipped_config("paper.toml");
+    let path = config.to_str().unwrap();
+    let (from_file, from_stdin) = (
+        run(dir, &["check", path], None),
+        run(dir, &["check", "-"], Some(&config)),
+    );
+    let body = |out: &Output| {
+        String::from_utf8(out.stdout.clone())
+            .unwrap()
+            .lines()
+            .skip(1)
+            .map(str::to_string)
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(body(&from_file), body(&from_stdin));
+    run(dir, &["-q", "simulate", path, "--out", "file"], None);
+    run(
+        dir,
+        &["-q", "simulate", "-", "--out", "stdin"],
+        Some(&config),
+    );
+    for name in ["truth.csv", "measurements.csv"] {
+        assert!(
+            std::fs::read(dir.join("file").join(name)).unwrap()
+                == std::fs::read(dir.join("stdin").join(name)).unwrap(),
+            "{name}"
+        );
+    }
+}

@@ -393,6 +393,16 @@ fn subsystems_without_a_sensor_are_gaps() {
             .assert()
             .success();
     }
+    // check names them per window.
+    let report = sisfilt().arg("check").arg(&config).output().unwrap();
+    let report = String::from_utf8(report.stdout).unwrap();
+    for line in [
+        "t = 1..4: no sensor on subsystems 1 (their measurements are gaps)",
+        "t = 5..12: no sensor on subsystems 1, 2, 4 (their measurements are gaps)",
+        "t = 13..25: no sensor on subsystems 1 (their measurements are gaps)",
+    ] {
+        assert!(report.lines().any(|l| l == line), "{line}: {report}");
+    }
     // The same draws: the cells of the subsystems with a sensor are the same, the others empty.
     let (a, b) = (
         Csv::read(&dir.join("without/measurements.csv")),
