@@ -9,8 +9,44 @@ use std::path::{Path, PathBuf};
 use crate::error::{Error, Result};
 use crate::io::folder_of;
 
-/// A matrix as the TOML writes it: a list of rows.
-pub type RawMatrix = Vec<Vec<f64>>;
+/// A matrix as the TOML writes it: a list of rows, or a number for a `1 × 1` matrix.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(transparent)]
+pub struct RawMatrix(pub Vec<Vec<f64>>);
+
+impl std::ops::Deref for RawMatrix {
+    type Target = Vec<Vec<f64>>;
+
+    fn deref(&self) -> &Self::Target {
+        &self.0
+    }
+}
+
+impl From<Vec<Vec<f64>>> for RawMatrix {
+    fn from(rows: Vec<Vec<f64>>) -> Self {
+        Self(rows)
+    }
+}
+
+impl<'de> Deserialize<'de> for RawMatrix {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Written {
+            Number(f64),
+            Rows(Vec<Vec<f64>>),
+        }
+        match Written::deserialize(de) {
+            Ok(Written::Number(x)) => Ok(Self(vec![vec![x]])),
+            Ok(Written::Rows(rows)) => Ok(Self(rows)),
+            // A required matrix left out is said as such.
+            Err(e) if e.to_string().starts_with("missing field") => Err(e),
+            Err(_) => Err(serde::de::Error::custom(
+                "expected a matrix as a list of rows of numbers, [[…], …], or a number for a 1 × 1 matrix",
+            )),
+        }
+    }
+}
 
 /// The whole config file.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -46,78 +82,25 @@ pub struct RawInterconnection {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawModel {
-    #[serde(deserialize_with = "matrix")]
     pub A: RawMatrix,
     /// Zero when left out, which only a chain without coupling allows (`n⁺ + n⁻ = 0` or
     /// `N = 1`); the same for `D`.
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub B: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub C: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub D: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub G: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub H: Option<RawMatrix>,
-    #[serde(deserialize_with = "matrix")]
     pub J: RawMatrix,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub R: Option<RawMatrix>,
-    #[serde(deserialize_with = "matrix")]
     pub M: RawMatrix,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub Q: Option<RawMatrix>,
-}
-
-/// A matrix as the TOML writes it: a list of rows, or a number for a `1 × 1` matrix.
-fn matrix<'de, D: serde::Deserializer<'de>>(de: D) -> Result<RawMatrix, D::Error> {
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum Written {
-        Number(f64),
-        Rows(RawMatrix),
-    }
-    match Written::deserialize(de) {
-        Ok(Written::Number(x)) => Ok(vec![vec![x]]),
-        Ok(Written::Rows(rows)) => Ok(rows),
-        Err(_) => Err(serde::de::Error::custom(
-            "expected a matrix as a list of rows of numbers, [[…], …], or a number for a 1 × 1 matrix",
-        )),
-    }
-}
-
-/// [`matrix`] of a key that may be left out.
-fn optional_matrix<'de, D: serde::Deserializer<'de>>(de: D) -> Result<Option<RawMatrix>, D::Error> {
-    matrix(de).map(Some)
 }
 
 /// `[dropout]`: the arrival probability `p`, one value or one per subsystem.
@@ -175,7 +158,6 @@ impl<'de> Deserialize<'de> for RawProbability {
 pub struct RawInitial {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mean: Option<Vec<f64>>,
-    #[serde(deserialize_with = "matrix")]
     pub cov: RawMatrix,
 }
 
@@ -277,65 +259,25 @@ pub struct RawOverride {
     pub subsystems: Option<RawRanges>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub steps: Option<RawRanges>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub A: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub B: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub C: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub D: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub G: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub H: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub J: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub R: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub M: Option<RawMatrix>,
-    #[serde(
-        default,
-        deserialize_with = "optional_matrix",
-        skip_serializing_if = "Option::is_none"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub Q: Option<RawMatrix>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub p: Option<f64>,

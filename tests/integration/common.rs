@@ -302,3 +302,34 @@ pub fn simulate_steps(model: &sisfilt::model::Model, steps: usize, seed: u64) ->
     .unwrap();
     run
 }
+
+/// The platoon simulated for `steps` steps into `dir` (its `truth.csv`, `inputs.csv`, …), and
+/// its measurements with gaps written to `dir/name`: the cells `(t, i)` with
+/// `gaps(t, i) = [element 1 empty, element 2 empty]`.
+pub fn platoon_with_gaps(
+    dir: &Path,
+    steps: usize,
+    name: &str,
+    gaps: impl Fn(usize, usize) -> [bool; 2],
+) -> PathBuf {
+    sisfilt()
+        .args(["-q", "simulate"])
+        .arg(shipped_config("platoon.toml"))
+        .args(["--steps", &steps.to_string(), "--out"])
+        .arg(dir)
+        .assert()
+        .success();
+    let text = std::fs::read_to_string(dir.join("measurements.csv")).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    for line in lines.iter_mut().skip(1) {
+        let mut cells: Vec<String> = line.split(',').map(str::to_string).collect();
+        let (t, i): (usize, usize) = (cells[0].parse().unwrap(), cells[1].parse().unwrap());
+        for (k, gap) in gaps(t, i).into_iter().enumerate() {
+            if gap {
+                cells[2 + k].clear();
+            }
+        }
+        *line = cells.join(",");
+    }
+    write_file(dir, name, &(lines.join("\n") + "\n"))
+}

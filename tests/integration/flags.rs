@@ -207,37 +207,30 @@ fn other_simulations_and_configs_are_named() {
 /// not have.
 #[test]
 fn evaluate_notes_name_no_option_of_another_command() {
-    let config = shipped_config("platoon.toml");
-    let out = sisfilt()
-        .args(["evaluate"])
-        .arg(&config)
-        .args(["--runs", "1", "--filters", "distributed,distributed-paper"])
-        .output()
-        .unwrap();
-    let table = String::from_utf8(out.stdout).unwrap();
-    let note = table
-        .lines()
-        .find(|l| l.starts_with("note: distributed-paper"))
-        .expect("a note on the skipped row");
+    let note = |config: &str, filters: &str| {
+        let out = sisfilt()
+            .args(["evaluate"])
+            .arg(shipped_config(config))
+            .args(["--runs", "1", "--filters", filters])
+            .output()
+            .unwrap();
+        let table = String::from_utf8(out.stdout).unwrap();
+        let note = table
+            .lines()
+            .find(|l| l.starts_with("note: distributed-paper"))
+            .map(str::to_string);
+        note.unwrap_or_else(|| panic!("no note on the paper's row: {table}"))
+    };
+    let skipped = note("platoon.toml", "distributed,distributed-paper");
     assert!(
-        note.contains("G22 of subsystem 2 is singular") && !note.contains("--solver"),
-        "{note}"
+        skipped.contains("G22 of subsystem 2 is singular") && !skipped.contains("--solver"),
+        "{skipped}"
     );
     // On the long heat rod its transfer solver overflows: said without a flag either.
-    let out = sisfilt()
-        .args(["evaluate"])
-        .arg(shipped_config("heat_rod.toml"))
-        .args(["--runs", "1", "--filters", "distributed-paper"])
-        .output()
-        .unwrap();
-    let table = String::from_utf8(out.stdout).unwrap();
-    let note = table
-        .lines()
-        .find(|l| l.starts_with("note: distributed-paper"))
-        .expect("a note on the failed row");
+    let failed = note("heat_rod.toml", "distributed-paper");
     assert!(
-        note.contains("overflowed") && !note.contains("--"),
-        "{note}"
+        failed.contains("overflowed") && !failed.contains("--"),
+        "{failed}"
     );
 }
 

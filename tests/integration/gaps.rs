@@ -9,8 +9,10 @@ use sisfilt::filter::{CentralizedFilter, ChainFilter, Dropouts, FilterKind, Upda
 use sisfilt::model::Model;
 use sisfilt::run::{Estimates, RunSpec, estimate};
 
-use crate::common::{Csv, model_from, shipped_config, simulate_run, sisfilt, write_file};
-use crate::reference_filters::{CHAIN, dense_lifted, dense_predict};
+use crate::common::{
+    Csv, model_from, platoon_with_gaps, shipped_config, simulate_run, sisfilt, write_file,
+};
+use crate::reference_filters::{CHAIN, assert_filtered_equal, dense_lifted, dense_predict};
 
 /// [`CHAIN`] with every subsystem alike (one `p`, no override), so that the distributed
 /// filter with the paper's moment shares one gain (until a gap).
@@ -75,6 +77,22 @@ fn assert_values(a: &[f64], b: &[f64], what: &str) {
     }
 }
 
+/// Two runs give the same estimates, covariances, NIS, `π` and log-likelihood (1e−10).
+fn assert_same_estimates(a: &Estimates, b: &Estimates, what: &str) {
+    assert_values(&a.x, &b.x, &format!("x of {what}"));
+    assert_values(&a.p, &b.p, &format!("P of {what}"));
+    assert_values(&a.nis, &b.nis, &format!("NIS of {what}"));
+    assert_eq!(a.arrival.is_some(), b.arrival.is_some(), "{what}");
+    if let (Some(pa), Some(pb)) = (&a.arrival, &b.arrival) {
+        assert_values(pa, pb, &format!("π of {what}"));
+    }
+    let (la, lb) = (a.report.summary.loglik, b.report.summary.loglik);
+    assert_eq!(la.is_some(), lb.is_some(), "{what}");
+    if let (Some(la), Some(lb)) = (la, lb) {
+        assert_values(&[la], &[lb], &format!("loglik of {what}"));
+    }
+}
+
 /// An element missing at every step is the model without that row: the same estimates,
 /// covariances, `π`, log-likelihood and NIS from every filter, update and smoother, in both
 /// dropout modes.
@@ -93,23 +111,11 @@ fn an_element_missing_everywhere_equals_the_model_without_its_row() {
             .collect();
         let y_reduced: Vec<f64> = y_gap.iter().copied().step_by(2).collect();
         for spec in specs() {
-            let what = format!("{spec:?}");
             let (a, b) = (
                 run(&full, &spec, &y_gap, &u),
                 run(&reduced, &spec, &y_reduced, &u),
             );
-            assert_values(&a.x, &b.x, &format!("x of {what}"));
-            assert_values(&a.p, &b.p, &format!("P of {what}"));
-            assert_values(&a.nis, &b.nis, &format!("NIS of {what}"));
-            assert_eq!(a.arrival.is_some(), b.arrival.is_some(), "{what}");
-            if let (Some(pa), Some(pb)) = (&a.arrival, &b.arrival) {
-                assert_values(pa, pb, &format!("π of {what}"));
-            }
-            let (la, lb) = (a.report.summary.loglik, b.report.summary.loglik);
-            assert_eq!(la.is_some(), lb.is_some(), "{what}");
-            if let (Some(la), Some(lb)) = (la, lb) {
-                assert_values(&[la], &[lb], &format!("loglik of {what}"));
-            }
+            assert_same_estimates(&a, &b, &format!("{spec:?}"));
         }
     }
 }
@@ -229,26 +235,7 @@ fn centralized_nahi_filter_with_gaps_equals_the_dense_filter_on_the_received_row
             x = &x + &gain * innov;
             p = (DMatrix::identity(size, size) - &gain * &h) * &p;
         }
-        let (xf, pf) = cent.filtered();
-        for k in 0..size {
-            assert!(
-                (xf[k] - x[k]).abs() < 1e-10,
-                "t={t} x[{k}]: {} vs {}",
-                xf[k],
-                x[k]
-            );
-        }
-        for i in 0..big_n {
-            for c in 0..n {
-                for r in 0..n {
-                    let got = pf[i * n * n + c * n + r];
-                    assert!(
-                        (got - p[(i * n + r, i * n + c)]).abs() < 1e-10,
-                        "t={t} P_{i}"
-                    );
-                }
-            }
-        }
+        assert_filtered_equal(t, cent.filtered(), &x, &p, n);
         dense_predict(&model, t, u, &mut x, &mut p);
         // The moments of the lifted state: X⁺ = A_eff X + U_eff U + Ω.
         let (a_eff, u_eff) = dense_lifted(&model, t);
@@ -273,26 +260,10 @@ fn gaps_on_the_command_line() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let config = shipped_config("platoon.toml");
-    sisfilt()
-        .args(["-q", "simulate"])
-        .arg(&config)
-        .args(["--steps", "12", "--out"])
-        .arg(dir)
-        .assert()
-        .success();
-    let text = std::fs::read_to_string(dir.join("measurements.csv")).unwrap();
-    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
     let silent = |t: usize, i: usize| i == 3 && (5..=9).contains(&t);
-    for line in lines.iter_mut().skip(1) {
-        let cells: Vec<&str> = line.split(',').collect();
-        let (t, i): (usize, usize) = (cells[0].parse().unwrap(), cells[1].parse().unwrap());
-        if silent(t, i) {
-            *line = format!("{t},{i},,");
-        } else if i == 5 {
-            *line = format!("{t},{i},,{}", cells[3]);
-        }
-    }
-    let meas = write_file(dir, "gaps.csv", &(lines.join("\n") + "\n"));
+    let meas = platoon_with_gaps(dir, 12, "gaps.csv", |t, i| {
+        [silent(t, i) || i == 5, silent(t, i)]
+    });
     let estimates = dir.join("estimates.csv");
     let out = sisfilt()
         .args(["estimate", "--config"])
@@ -440,19 +411,11 @@ fn subsystems_without_a_sensor_are_gaps() {
         })
         .collect();
     for spec in specs() {
-        let what = format!("{spec:?}");
         let (a, b) = (
             run(&without_model, &spec, &y, &u),
             run(&with_model, &spec, &y_gap, &u),
         );
-        assert_values(&a.x, &b.x, &format!("x of {what}"));
-        assert_values(&a.p, &b.p, &format!("P of {what}"));
-        assert_values(&a.nis, &b.nis, &format!("NIS of {what}"));
-        let (la, lb) = (a.report.summary.loglik, b.report.summary.loglik);
-        assert_eq!(la.is_some(), lb.is_some(), "{what}");
-        if let (Some(la), Some(lb)) = (la, lb) {
-            assert_values(&[la], &[lb], &format!("loglik of {what}"));
-        }
+        assert_same_estimates(&a, &b, &format!("{spec:?}"));
     }
     // evaluate: the replayed covariance passes (joint, centralized) take the missing sensors.
     let out = sisfilt()

@@ -7,10 +7,10 @@
 //! Python comes from `SISFILT_TEST_PYTHON` (CI sets it to a venv with numpy and pandas) or
 //! `python3`; without numpy and pandas the tests say so and pass.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-use crate::common::{one_error_line, shipped_config, sisfilt, write_file};
+use crate::common::{one_error_line, platoon_with_gaps, shipped_config, sisfilt};
 
 /// A Python with numpy and pandas, or `None` (said on standard error).
 fn python() -> Option<String> {
@@ -41,30 +41,6 @@ fn run_python(python: &str, dir: &Path, script: &str) {
     );
 }
 
-/// The platoon simulated for 15 steps into `dir`, with its measurements rewritten by hand
-/// with gaps: car 3's row empty at t = 4..6 and car 5's second element empty throughout.
-fn simulate_with_gaps(dir: &Path) -> PathBuf {
-    sisfilt()
-        .args(["-q", "simulate"])
-        .arg(shipped_config("platoon.toml"))
-        .args(["--steps", "15", "--out"])
-        .arg(dir)
-        .assert()
-        .success();
-    let text = std::fs::read_to_string(dir.join("measurements.csv")).unwrap();
-    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
-    for line in lines.iter_mut().skip(1) {
-        let cells: Vec<String> = line.split(',').map(str::to_string).collect();
-        let (t, i): (usize, usize) = (cells[0].parse().unwrap(), cells[1].parse().unwrap());
-        if i == 3 && (4..=6).contains(&t) {
-            *line = format!("{t},{i},,");
-        } else if i == 5 {
-            *line = format!("{t},{i},{},", cells[2]);
-        }
-    }
-    write_file(dir, "by_hand.csv", &(lines.join("\n") + "\n"))
-}
-
 /// The estimates (CSV bytes) of `meas` and `inputs` under `args`.
 fn estimates(dir: &Path, meas: &str, inputs: &str, args: &[&str]) -> Vec<u8> {
     let out = sisfilt()
@@ -88,7 +64,11 @@ fn files_written_by_numpy_and_pandas_are_read_as_they_are() {
     let Some(python) = python() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    simulate_with_gaps(dir);
+    // Car 3's row empty at t = 4..6, car 5's second element empty throughout.
+    platoon_with_gaps(dir, 15, "by_hand.csv", |t, i| {
+        let silent = i == 3 && (4..=6).contains(&t);
+        [silent, silent || i == 5]
+    });
     run_python(
         &python,
         dir,

@@ -205,27 +205,38 @@ fn centralized_known_equals_dense_lifted_kalman_filter() {
             .collect();
         cent.step(&y, &run.u[t0]).unwrap();
         dense_kalman_update(&model, t, &y, &run.u[t0], &mut x, &mut p);
-        let (xf, pf) = cent.filtered();
-        for k in 0..big_n * n {
-            assert!(
-                (xf[k] - x[k]).abs() < 1e-10,
-                "t={t} k={k}: {} vs {}",
-                xf[k],
-                x[k]
-            );
-        }
-        for i in 0..big_n {
-            for c in 0..n {
-                for r in 0..n {
-                    let got = pf[i * n * n + c * n + r];
-                    assert!(
-                        (got - p[(i * n + r, i * n + c)]).abs() < 1e-10,
-                        "t={t} block {i}"
-                    );
-                }
+        assert_filtered_equal(t, cent.filtered(), &x, &p, n);
+        dense_predict(&model, t, &run.u[t0], &mut x, &mut p);
+    }
+}
+
+/// A filter's `x̂(t|t)` (`N·n`) and diagonal blocks of `P(t|t)` (`N·n²`, column-major) equal
+/// the dense `x` and the diagonal blocks of the dense `p` to 1e−10.
+pub fn assert_filtered_equal(
+    t: usize,
+    (xf, pf): (&[f64], &[f64]),
+    x: &DVector<f64>,
+    p: &DMatrix<f64>,
+    n: usize,
+) {
+    for k in 0..x.len() {
+        assert!(
+            (xf[k] - x[k]).abs() < 1e-10,
+            "t={t} k={k}: {} vs {}",
+            xf[k],
+            x[k]
+        );
+    }
+    for i in 0..x.len() / n {
+        for c in 0..n {
+            for r in 0..n {
+                let got = pf[i * n * n + c * n + r];
+                assert!(
+                    (got - p[(i * n + r, i * n + c)]).abs() < 1e-10,
+                    "t={t} block {i}"
+                );
             }
         }
-        dense_predict(&model, t, &run.u[t0], &mut x, &mut p);
     }
 }
 
