@@ -446,3 +446,114 @@ fn subsystems_without_a_sensor_are_gaps() {
         );
     }
 }
+
+/// The gap pattern of the tests below: at step `t`, element `k` of the chain's `y` (`q = 2`)
+/// is missing — whole subsystems at some steps, single elements at others, none at the rest.
+fn changing_gap(t: usize, k: usize) -> bool {
+    (t + k / 2).is_multiple_of(6) || (k * 5 + t).is_multiple_of(4)
+}
+
+fn with_changing_gaps(y: &[f64], t: usize) -> Vec<f64> {
+    y.iter()
+        .enumerate()
+        .map(|(k, &v)| if changing_gap(t, k) { f64::NAN } else { v })
+        .collect()
+}
+
+/// On a gap pattern that changes every step, the joint filter at full band (loading 0) is the
+/// centralized filter — Nahi's update with the band and the lifted moment, and the mixture
+/// update — which the dense reference above checks; so each deletes the rows as it does.
+#[test]
+fn joint_filter_at_full_band_deletes_the_rows_as_the_centralized_one() {
+    use sisfilt::filter::{JointFilter, JointOptions, SecondMoment};
+    let model = model_from(CHAIN);
+    let sim = simulate_run(&model, 41);
+    for (moment, update) in [
+        (SecondMoment::Band, Update::Linear),
+        (SecondMoment::Lifted, Update::Linear),
+        (SecondMoment::Band, Update::Mixture),
+    ] {
+        let opts = JointOptions {
+            loading: Some(0.0),
+            update,
+            ..JointOptions::full_band(&model, moment, Dropouts::Unknown)
+        };
+        let mut joint = JointFilter::new(&model, opts).unwrap();
+        let cent = CentralizedFilter::new(&model, false, 100).unwrap();
+        let mut cent = match update {
+            Update::Mixture => cent.with_mixture_update().unwrap(),
+            Update::Linear => cent,
+        };
+        for (t0, (y, u)) in sim.y.iter().zip(&sim.u).enumerate() {
+            let y = with_changing_gaps(y, t0 + 1);
+            joint.step(&y, u).unwrap();
+            cent.step(&y, u).unwrap();
+            let what = format!("{moment:?} {update:?} t = {}", t0 + 1);
+            assert_values(joint.filtered().0, cent.filtered().0, &format!("x {what}"));
+            assert_values(joint.filtered().1, cent.filtered().1, &format!("P {what}"));
+            if let (Some(a), Some(b)) = (joint.arrival(), cent.arrival()) {
+                assert_values(a, b, &format!("π {what}"));
+            }
+        }
+    }
+}
+
+/// With one subsystem (no coupling) the distributed filter's mixture update on a changing gap
+/// pattern equals the mixture update written here on the received rows alone (`J_r`, `M_rr`,
+/// `R_r`: the rows deleted), followed by the prediction `A x + C u`, `A P Aᵀ + Q`; with no row
+/// the prior stays and `π` is unknown.
+#[test]
+fn mixture_update_with_gaps_equals_the_update_on_the_received_rows() {
+    let text = homogeneous_chain().replace("subsystems = 4", "subsystems = 1");
+    let model = model_from(&text);
+    let sim = simulate_run(&model, 43);
+    let spec = RunSpec {
+        update: Update::Mixture,
+        ..RunSpec::default()
+    };
+    let mut filter = spec.check().unwrap().build_filter(&model).unwrap();
+    let prm = model.params(1, 1).clone();
+    let p_arrive = 0.7;
+    let mut x = DVector::from_column_slice(&[1.0, -0.5]);
+    let mut p = DMatrix::from_row_slice(2, 2, &[0.8, 0.1, 0.1, 0.6]);
+    let log_normal = |e: &DVector<f64>, s: &DMatrix<f64>| {
+        -0.5 * (e.len() as f64 * (2.0 * std::f64::consts::PI).ln()
+            + s.determinant().ln()
+            + (e.transpose() * s.clone().try_inverse().unwrap() * e)[0])
+    };
+    for (t0, (y, u)) in sim.y.iter().zip(&sim.u).enumerate() {
+        let t = t0 + 1;
+        let y = with_changing_gaps(y, t);
+        filter.step(&y, u).unwrap();
+        let rows: Vec<usize> = (0..2).filter(|&k| !y[k].is_nan()).collect();
+        let pick = |m: &DMatrix<f64>, cols: bool| {
+            DMatrix::from_fn(
+                rows.len(),
+                if cols { rows.len() } else { m.ncols() },
+                |r, c| m[(rows[r], if cols { rows[c] } else { c })],
+            )
+        };
+        let (j, m) = (pick(&prm.J, false), pick(&prm.M, true));
+        let ru = &prm.R * DVector::from_column_slice(u);
+        let e0 = DVector::from_fn(rows.len(), |r, _| y[rows[r]] - ru[rows[r]]);
+        let pi = if rows.is_empty() {
+            f64::NAN
+        } else {
+            let e = &e0 - &j * &x;
+            let s1 = &j * &p * j.transpose() + &m;
+            let (l1, l0) = (log_normal(&e, &s1), log_normal(&e0, &m));
+            let pi = p_arrive * l1.exp() / (p_arrive * l1.exp() + (1.0 - p_arrive) * l0.exp());
+            let k = &p * j.transpose() * s1.clone().try_inverse().unwrap();
+            let g = &k * &e;
+            p = &p - &k * &s1 * k.transpose() * pi + &g * g.transpose() * (pi * (1.0 - pi));
+            x = &x + &g * pi;
+            pi
+        };
+        let p_blocks: Vec<f64> = p.as_slice().to_vec();
+        assert_values(filter.filtered().0, x.as_slice(), &format!("x t = {t}"));
+        assert_values(filter.filtered().1, &p_blocks, &format!("P t = {t}"));
+        assert_values(filter.arrival().unwrap(), &[pi], &format!("π t = {t}"));
+        x = &prm.A * &x + &prm.C * DVector::from_column_slice(u);
+        p = &prm.A * &p * prm.A.transpose() + &prm.Q;
+    }
+}
