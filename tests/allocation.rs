@@ -366,8 +366,14 @@ fn steps_after_the_first_allocate_nothing() {
                 );
                 let writer = EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();
                 let mut background = BackgroundWriter::new(writer, big_n);
-                background.write_step(1, &x, &p, None, pi).unwrap();
-                let mut t = 1;
+                // Warm-up: the channels allocate a waker entry the first time each side
+                // waits (the caller for a free batch, the thread for a full one), at moments
+                // the thread's scheduling decides; let both wait once before counting.
+                for t in 1..=4 {
+                    background.write_step(t, &x, &p, None, pi).unwrap();
+                }
+                std::thread::sleep(std::time::Duration::from_millis(200));
+                let mut t = 4;
                 let count = allocations_in(|| {
                     for _ in 0..2 {
                         t += 1;
