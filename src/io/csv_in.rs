@@ -17,8 +17,6 @@ pub struct StepLayout {
     pub extra: &'static [&'static str],
     /// Whether an empty cell is allowed (read as NaN: a lost measurement element).
     pub allow_empty: bool,
-    /// Said after the error for an empty cell that is not allowed.
-    pub empty_hint: &'static str,
 }
 
 impl StepLayout {
@@ -30,7 +28,6 @@ impl StepLayout {
             width: q,
             extra: &[],
             allow_empty: true,
-            empty_hint: "",
         }
     }
 
@@ -41,7 +38,6 @@ impl StepLayout {
             width: m,
             extra: &[],
             allow_empty: false,
-            empty_hint: "",
         }
     }
 
@@ -52,7 +48,6 @@ impl StepLayout {
             width: n,
             extra: &["gamma"],
             allow_empty: false,
-            empty_hint: "",
         }
     }
 
@@ -144,7 +139,6 @@ pub struct StepReader<R: Read> {
     header: Vec<String>,
     /// The first column (of the row, `t` and `i` included) whose cells may be empty.
     optional_from: usize,
-    empty_hint: &'static str,
     subsystems: usize,
     /// The first indicator column (`gamma`, docs/theory.md §13: 0 or 1); the header's length if none.
     first_indicator: usize,
@@ -162,7 +156,6 @@ impl<R: Read> StepReader<R> {
             source,
             layout.header(),
             if layout.allow_empty { 0 } else { usize::MAX },
-            layout.empty_hint,
             subsystems,
         )
     }
@@ -175,7 +168,6 @@ impl<R: Read> StepReader<R> {
         source: R,
         header: Vec<String>,
         optional_from: usize,
-        empty_hint: &'static str,
         subsystems: usize,
     ) -> Result<Self> {
         debug_assert!(header.len() >= 2 && header[0] == "t" && header[1] == "i");
@@ -193,7 +185,6 @@ impl<R: Read> StepReader<R> {
             header,
             first_indicator,
             optional_from: optional_from.saturating_add(2),
-            empty_hint,
             subsystems,
             reader,
             record: csv::ByteRecord::new(),
@@ -365,22 +356,15 @@ impl<R: Read> StepReader<R> {
                 ),
             ));
         };
-        if text.is_empty() || is_nan_text(text) {
-            if col >= self.optional_from {
-                return Ok(f64::NAN);
-            }
+        // A missing value where one may be missing; elsewhere `NaN` is refused below, as
+        // any number that is not finite.
+        if (text.is_empty() || is_nan_text(text)) && col >= self.optional_from {
+            return Ok(f64::NAN);
+        }
+        if text.is_empty() {
             return Err(self.err(
                 line,
-                format!(
-                    "column `{}`: {}{}",
-                    self.column_name(col),
-                    if text.is_empty() {
-                        "empty cell".to_string()
-                    } else {
-                        format!("expected a finite number, found `{text}`")
-                    },
-                    self.empty_hint
-                ),
+                format!("column `{}`: empty cell", self.column_name(col)),
             ));
         }
         match text.parse::<f64>() {

@@ -269,7 +269,7 @@ impl EstimatesFile {
         // As in the JSON: estimates and covariances must be numbers; a cross-covariance
         // block, `π` or the NIS may be missing (empty).
         let own = columns.n + columns.n * (columns.n + 1) / 2;
-        let reader = StepReader::with_header(&name, open(path)?, header, own, "", subsystems)?;
+        let reader = StepReader::with_header(&name, open(path)?, header, own, subsystems)?;
         Ok(Self {
             source: EstimatesSource::Csv(Box::new(reader)),
             name,
