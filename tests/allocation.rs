@@ -339,6 +339,7 @@ fn steps_after_the_first_allocate_nothing() {
             assert_eq!(count, 0, "reader, {threads} threads: {count} allocations");
             // With the arrival column of the mixture update and the NIS column.
             let columns = EstimatesColumns {
+                predicted: false,
                 n: 2,
                 cross: 0,
                 arrival: true,

@@ -161,7 +161,8 @@ impl<R: Read> StepReader<R> {
     }
 
     /// Like [`StepReader::new`], for files whose value columns are not `prefix1..prefixW`
-    /// (the estimates file, docs/theory.md §13): `header` is the exact header, `t` and `i` first;
+    /// (the estimates file, docs/theory.md §13): `header` is the exact header, the step (`t`,
+    /// or `t_given` for predicted estimates) and `i` first;
     /// a cell of value column `optional_from` (0-based, after `t` and `i`) or later may be empty.
     pub fn with_header(
         name: &str,
@@ -170,7 +171,7 @@ impl<R: Read> StepReader<R> {
         optional_from: usize,
         subsystems: usize,
     ) -> Result<Self> {
-        debug_assert!(header.len() >= 2 && header[0] == "t" && header[1] == "i");
+        debug_assert!(header.len() >= 2 && header[1] == "i");
         let reader = csv::ReaderBuilder::new()
             .has_headers(false)
             .flexible(true)
@@ -293,7 +294,7 @@ impl<R: Read> StepReader<R> {
                     ),
                 ));
             }
-            let (rt, ri) = (self.index(line, 0, "t")?, self.index(line, 1, "i")?);
+            let (rt, ri) = (self.index(line, 0)?, self.index(line, 1)?);
             if (rt, ri) != (t, i) {
                 return Err(self.err(
                     line,
@@ -331,13 +332,14 @@ impl<R: Read> StepReader<R> {
         self.header[col].clone()
     }
 
-    fn index(&self, line: u64, col: usize, what: &str) -> Result<usize> {
+    fn index(&self, line: u64, col: usize) -> Result<usize> {
         let field = self.record.get(col).unwrap_or_default();
         parse_index(field.trim_ascii()).ok_or_else(|| {
             self.err(
                 line,
                 format!(
-                    "column `{what}`: expected a positive integer, found `{}`",
+                    "column `{}`: expected a positive integer, found `{}`",
+                    self.column_name(col),
                     String::from_utf8_lossy(field).escape_debug()
                 ),
             )

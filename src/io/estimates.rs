@@ -182,7 +182,8 @@ pub struct EstimatesDocument {
     pub summary: EstimatesSummary,
 }
 
-/// The column names of an estimates file with state dimension `n`.
+/// The column names of an estimates file with state dimension `n` (filtered or smoothed
+/// estimates; predicted ones name their first column [`PREDICTED_STEP_COLUMN`]).
 pub fn estimates_header(n: usize) -> Vec<String> {
     let mut h = vec!["t".to_string(), "i".to_string()];
     h.extend((1..=n).map(|k| format!("x{k}")));
@@ -208,6 +209,10 @@ pub fn cross_covariance_header(n: usize, k: usize) -> Vec<String> {
     h
 }
 
+/// The first column of predicted estimates (`x̂(t+1|t)` on row `t`): the step `t` whose
+/// data they are given, named so that a file says what its rows hold, and a reader cannot
+/// take them for estimates of step `t` (docs/theory.md §13).
+pub const PREDICTED_STEP_COLUMN: &str = "t_given";
 /// The column of `π(t, i)`, the posterior probability that the measurement arrived (the
 /// mixture update, docs/theory.md §10).
 pub const ARRIVAL_COLUMN: &str = "arrival";
@@ -215,11 +220,15 @@ pub const ARRIVAL_COLUMN: &str = "arrival";
 /// last of a row, when asked for.
 pub const NIS_COLUMN: &str = "nis";
 
-/// The columns of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n`, then in JSON the
-/// cross-covariance blocks `C{d}_{r}_{c}` of `d = 1..cross`, then `arrival` when the filter
-/// reports it, then `nis` when asked for (docs/theory.md §13).
+/// The columns of an estimates file: `t,i,x1..xn,P1_1,P1_2..Pn_n` (`t_given` for `t` when
+/// the rows hold predicted estimates), then in JSON the cross-covariance blocks
+/// `C{d}_{r}_{c}` of `d = 1..cross`, then `arrival` when the filter reports it, then `nis`
+/// when asked for (docs/theory.md §13).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EstimatesColumns {
+    /// The rows hold `x̂(t+1|t)` and `T(t+1)` on row `t`: the first column is
+    /// [`PREDICTED_STEP_COLUMN`].
+    pub predicted: bool,
     /// State dimension.
     pub n: usize,
     /// Cross-covariance blocks per row.
@@ -234,6 +243,9 @@ impl EstimatesColumns {
     /// The column names, `t` and `i` included.
     pub fn header(&self) -> Vec<String> {
         let mut h = estimates_header(self.n);
+        if self.predicted {
+            h[0] = PREDICTED_STEP_COLUMN.to_string();
+        }
         h.extend(cross_covariance_header(self.n, self.cross));
         for (name, present) in [(ARRIVAL_COLUMN, self.arrival), (NIS_COLUMN, self.nis)] {
             if present {
@@ -253,10 +265,12 @@ impl EstimatesColumns {
         };
         let nis = last_is(NIS_COLUMN);
         let arrival = last_is(ARRIVAL_COLUMN);
+        let predicted = header.first().map(String::as_str) == Some(PREDICTED_STEP_COLUMN);
         (1..=width).find_map(|n| {
             let own = 2 + n + n * (n + 1) / 2;
             let cross = width.checked_sub(own)? / (n * n);
             let columns = Self {
+                predicted,
                 n,
                 cross,
                 arrival,
@@ -682,6 +696,7 @@ mod tests {
 
     fn columns(n: usize) -> EstimatesColumns {
         EstimatesColumns {
+            predicted: false,
             n,
             cross: 0,
             arrival: false,
@@ -746,10 +761,11 @@ mod tests {
     /// The columns read back from their names are the columns written.
     #[test]
     fn columns_parse_their_header() {
-        for n in 1..=4 {
+        for (n, predicted) in (1..=4).flat_map(|n| [(n, false), (n, true)]) {
             for cross in 0..=3 {
                 for (arrival, nis) in [(false, false), (true, false), (false, true), (true, true)] {
                     let columns = EstimatesColumns {
+                        predicted,
                         n,
                         cross,
                         arrival,
@@ -760,6 +776,9 @@ mod tests {
                     assert_eq!(header.len(), 2 + columns.values());
                     let mut renamed = header.clone();
                     renamed[2] = "y1".into();
+                    assert_eq!(EstimatesColumns::parse(&renamed), None);
+                    let mut renamed = header.clone();
+                    renamed[0] = "time".into();
                     assert_eq!(EstimatesColumns::parse(&renamed), None);
                     // Without its last column, a header is another one only when that
                     // column was `nis` or `arrival`, or a whole 1 × 1 cross-covariance block.

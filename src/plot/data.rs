@@ -9,7 +9,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
-use crate::io::estimates::{EstimateKind, EstimatesColumns, EstimatesDocument};
+use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
 use crate::io::{StepLayout, StepReader};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
@@ -212,8 +212,6 @@ pub struct EstimatesFile {
     pub n: usize,
     /// Chain length `N`.
     pub subsystems: usize,
-    /// What the rows hold, when the file says (the JSON's metadata).
-    kind: Option<EstimateKind>,
 }
 
 impl EstimatesFile {
@@ -261,7 +259,6 @@ impl EstimatesFile {
                 columns,
                 n: columns.n,
                 subsystems,
-                kind: Some(doc.metadata.options.output),
             });
         }
         let (header, subsystems) = probe_csv(path)?;
@@ -276,18 +273,17 @@ impl EstimatesFile {
             columns,
             n: columns.n,
             subsystems,
-            kind: None,
         })
     }
 
     /// Refuses to score these estimates against a truth when they are predicted ones
-    /// (`x̂(t+1|t)` on row `t`, which the JSON's metadata says; a CSV does not say).
+    /// (`x̂(t+1|t)` on row `t`, which the first column, `t_given`, says).
     pub fn check_against_truth(&self) -> Result<()> {
-        if self.kind != Some(EstimateKind::Predicted) {
+        if !self.columns.predicted {
             return Ok(());
         }
         Err(Error::Usage(format!(
-            "{}: predicted estimates (estimate --predicted: x̂(t+1|t) on row t) would be one step off against --truth; plot filtered or smoothed estimates, or leave --truth out",
+            "{}: predicted estimates (estimate --predicted: x̂(t+1|t) on row t_given = t) would be one step off against --truth; plot filtered or smoothed estimates, or leave --truth out",
             self.name
         )))
     }

@@ -273,11 +273,13 @@ impl CheckedSpec {
         self.joint.map(|j| j.band.min(model.subsystems - 1))
     }
 
-    /// The columns of the run's estimates on `model`: the covariance band `k` beside the
+    /// The columns of the run's estimates on `model`: `t_given` first for predicted
+    /// estimates, the covariance band `k` beside the
     /// diagonal blocks (the joint filter's, at most `N − 1`; 0 for the others), and `π` with
     /// the mixture update.
     pub fn columns(&self, model: &Model) -> EstimatesColumns {
         EstimatesColumns {
+            predicted: self.output() == EstimateKind::Predicted,
             n: model.dims.n,
             cross: self.joint_band(model).unwrap_or(0),
             arrival: self.update() == Update::Mixture,

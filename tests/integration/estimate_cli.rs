@@ -1199,7 +1199,11 @@ fn predicted_output() {
     let out = ok(estimate(&config, &meas, &["--predicted"])
         .arg("--truth")
         .arg(&truth));
-    let predicted = Csv::parse(&out.stdout);
+    let mut predicted = Csv::parse(&out.stdout);
+    // The first column says the rows hold predicted estimates; the rest are those of any
+    // estimates file.
+    assert_eq!(predicted.header[0], "t_given");
+    predicted.header[0] = "t".into();
     check_estimates(&predicted, big_n, steps, n);
     assert_eq!(predicted.rows.len(), filtered.rows.len());
 
@@ -1240,6 +1244,7 @@ fn predicted_output() {
     );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["options"]["output"], "predicted");
+    assert_eq!(v["columns"][0], "t_given");
     let acc = &v["accuracy"];
     assert!(acc["rmse"].is_array(), "{acc}");
     if let Some(terms) = acc.get("terms") {
