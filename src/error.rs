@@ -54,6 +54,10 @@ pub enum Error {
     #[error(transparent)]
     Run(#[from] crate::run::RunError),
 
+    /// Settings of a fit that do not go together (docs/theory.md §16).
+    #[error(transparent)]
+    Fit(#[from] crate::fit::FitError),
+
     /// A command-line argument is unusable.
     #[error("{0}")]
     Usage(String),

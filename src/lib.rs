@@ -57,6 +57,7 @@ pub mod config;
 pub mod error;
 pub mod evaluate;
 pub mod filter;
+pub mod fit;
 pub mod innovations;
 pub mod inputs;
 pub mod interconnect;

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 
 use sisfilt::accuracy::AccuracyReport;
-use sisfilt::config::{ConfigSource, RawConfig};
+use sisfilt::config::{ConfigSetting, ConfigSource, RawConfig};
 use sisfilt::error::Error;
 use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use sisfilt::inputs::{InputStream, open_csv};
@@ -153,40 +153,58 @@ impl EstimateArgs {
     }
 }
 
-/// The config of an `estimate` run: `--config`, else the `run.json` beside `--meas`. Also
-/// returns the folder of that run record, if one was used.
-fn estimate_config(args: &EstimateArgs) -> Result<(ConfigSource, Option<PathBuf>)> {
-    if let Some(path) = &args.config {
-        let src = ConfigSource::from_file(path)?;
-        if let Some(record) = record_beside(&args.meas)
-            && !same_config(&record.config, &src.raw)
-        {
-            warn(format!(
-                "--config {}: not the config that simulated --meas {} (the one its {} records): the estimates are of another model than the data's",
-                path.display(),
-                args.meas.display(),
-                RunRecord::FILE
-            ));
-        }
-        return Ok((src.with_settings(&args.set.set)?, None));
+/// The config of a run on a measurement file (`estimate`, `fit`): `config`, else the
+/// `run.json` beside `meas`, with `set` over it. Also returns the folder of that run record,
+/// if one was used.
+pub(super) fn data_config(
+    config: Option<&Path>,
+    meas: &Path,
+    set: &[ConfigSetting],
+) -> Result<(ConfigSource, Option<PathBuf>)> {
+    if let Some(path) = config {
+        return Ok((ConfigSource::from_file(path)?.with_settings(set)?, None));
     }
     let missing = || {
         Error::Usage(format!(
             "--config is required: {} has no {} beside it (one written by `sisfilt simulate`)",
-            args.meas.display(),
+            meas.display(),
             RunRecord::FILE
         ))
     };
-    if args.meas.as_os_str() == "-" {
+    if meas.as_os_str() == "-" {
         return Err(Error::Usage(
             "--config is required when the measurements come from standard input".into(),
         )
         .into());
     }
-    let dir = folder_of(&args.meas).to_path_buf();
+    let dir = folder_of(meas).to_path_buf();
     let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
     let src = record.config_source(&dir.join(RunRecord::FILE))?;
-    Ok((src.with_settings(&args.set.set)?, Some(dir)))
+    Ok((src.with_settings(set)?, Some(dir)))
+}
+
+/// The inputs file of a run on a measurement file: `inputs`, else `inputs.csv` beside a
+/// simulated `meas` (in `run_dir`); `None` with the config's own inputs. `--inputs` for a
+/// model without inputs is refused.
+pub(super) fn data_inputs(
+    model: &Model,
+    inputs: Option<&Path>,
+    run_dir: Option<&Path>,
+) -> Result<Option<PathBuf>> {
+    if model.dims.m == 0
+        && let Some(path) = inputs
+    {
+        return Err(Error::Usage(format!(
+            "--inputs {}: the model has no inputs (m = 0), so the file would never be read; leave --inputs out",
+            path.display()
+        ))
+        .into());
+    }
+    Ok(inputs.map(Path::to_path_buf).or_else(|| {
+        run_dir
+            .map(|dir| dir.join("inputs.csv"))
+            .filter(|p| model.dims.m > 0 && p.is_file())
+    }))
 }
 
 /// The run record beside a data file, when there is one that reads (a record that does not
@@ -201,6 +219,24 @@ fn record_beside(path: &Path) -> Option<RunRecord> {
 /// Whether two configs are the same tables (the settings applied).
 fn same_config(a: &RawConfig, b: &RawConfig) -> bool {
     serde_json::to_value(a).ok() == serde_json::to_value(b).ok()
+}
+
+/// Warns when `--config` (its text, before `--set`) is not the config recorded beside
+/// `--meas`.
+fn warn_if_other_config(config: &Path, meas: &Path, src: &ConfigSource) {
+    let Some(record) = record_beside(meas) else {
+        return;
+    };
+    let file = ConfigSource::from_text(&src.name, src.dir.clone(), src.text.clone());
+    if file.is_ok_and(|file| same_config(&record.config, &file.raw)) {
+        return;
+    }
+    warn(format!(
+        "--config {}: not the config that simulated --meas {} (the one its {} records): the estimates are of another model than the data's",
+        config.display(),
+        meas.display(),
+        RunRecord::FILE
+    ));
 }
 
 /// Warns when `--truth` and `--meas` come from different simulations: the run records beside
@@ -239,26 +275,14 @@ fn warn_if_other_truth(meas: &Path, truth: &Path) {
 pub fn run(args: &EstimateArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let spec = args.spec()?;
-    let (src, run_dir) = estimate_config(args)?;
+    let (src, run_dir) = data_config(args.config.as_deref(), &args.meas, &args.set.set)?;
+    if let Some(path) = &args.config {
+        warn_if_other_config(path, &args.meas, &src);
+    }
     let model = Model::from_config(&src)?;
     let d = model.dims;
     let (n, big_n) = (d.n, model.subsystems);
-
-    let inputs_file = args.inputs.clone().or_else(|| {
-        run_dir
-            .as_ref()
-            .map(|dir| dir.join("inputs.csv"))
-            .filter(|p| d.m > 0 && p.is_file())
-    });
-    if d.m == 0
-        && let Some(path) = &args.inputs
-    {
-        return Err(Error::Usage(format!(
-            "--inputs {}: the model has no inputs (m = 0), so the file would never be read; leave --inputs out",
-            path.display()
-        ))
-        .into());
-    }
+    let inputs_file = data_inputs(&model, args.inputs.as_deref(), run_dir.as_deref())?;
     let record = run_dir.as_ref().map(|dir| dir.join(RunRecord::FILE));
     let mut read: Vec<Role> = (args.config.iter().map(|p| Role::new("--config", p)))
         .chain(record.iter().map(|p| Role::new("the run record", p)))

@@ -2,7 +2,8 @@
 //! command to [`run`]; each command turns its arguments into library calls and reports on
 //! standard error through [`sisfilt::messages`].
 //!
-//! - [`check`], [`simulate`], [`estimate`], [`evaluate`], [`plot`], [`completions`], [`man`]:
+//! - [`check`], [`simulate`], [`estimate`], [`fit`], [`evaluate`], [`plot`], [`completions`],
+//!   [`man`]:
 //!   one file per command, each with its arguments (the doc comments are the `--help` text).
 //! - [`choice`]: the library's named options ([`sisfilt::choice::Choice`]) as clap values.
 
@@ -11,6 +12,7 @@ mod choice;
 mod completions;
 mod estimate;
 mod evaluate;
+mod fit;
 mod man;
 mod plot;
 mod simulate;
@@ -24,6 +26,7 @@ use clap::{Parser, Subcommand};
 use sisfilt::config::ConfigSetting;
 use sisfilt::error::Error;
 use sisfilt::evaluate::EvaluateError;
+use sisfilt::fit::FitError;
 use sisfilt::inputs::{InputStream, RunInputs};
 use sisfilt::io::{Output, Role};
 use sisfilt::model::Model;
@@ -89,6 +92,9 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Run the filter on a measurement file and write x̂(t|t) with P(t|t) for every (t, i).
     Estimate(estimate::EstimateArgs),
+    /// Fit the arrival probability p and the diagonals of Q and M to a measurement file by
+    /// maximum likelihood, with 95 % intervals; optionally write the fitted config.
+    Fit(fit::FitArgs),
     /// Monte Carlo comparison of the distributed filter with the paper's version, the joint
     /// band-k filter, the optimal centralized filter, a filter that knows the dropouts and a
     /// naive one.
@@ -119,6 +125,7 @@ pub fn run(command: Command) -> Result<()> {
         // On a worker of rayon's pool, so that the parallel loops of every step (filter,
         // writer, readers) start without waking the pool from outside each time.
         Command::Estimate(args) => rayon::scope(|_| estimate::run(&args)),
+        Command::Fit(args) => fit::run(&args),
         Command::Evaluate(args) => evaluate::run(&args),
         Command::Plot(command) => plot::run(command),
         Command::Completions { shell } => completions::run(shell),
@@ -199,6 +206,13 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
             format!("--sweep-p: expected probabilities in [0, 1], found {p}")
         }
         e @ Error::TransferSolver { .. } => format!("{e}; use --solver banded"),
+        Error::Fit(FitError::UnknownParameter(name)) => {
+            format!("--params: unknown parameter `{name}`: expected a list of p, Q and M")
+        }
+        Error::Fit(FitError::NoParameters) => "--params: expected at least one of p, Q and M".into(),
+        Error::Fit(FitError::DistributedQ) => "--filter distributed cannot fit Q: its log-likelihood ignores the uncertainty of the neighbours' states, which Q then absorbs (docs/theory.md §16); use --filter joint or centralized, or leave Q out of --params".into(),
+        Error::Fit(FitError::PWithKnownDropouts) => "--dropouts known: p does not enter the likelihood of the measurements received (the lost ones are given); leave p out of --params, or fit with --dropouts unknown".into(),
+        Error::Fit(FitError::NoIterations) => "--max-iter: expected at least 1".into(),
         Error::Run(RunError::NothingScored) => "--truth: no step could be scored (with --predicted, row t is scored against the truth at t + 1, and the measurements hold one step)".into(),
         other => return other,
     })

@@ -650,9 +650,20 @@ impl Model {
             w.p.fill(p);
         }
         // Windows that differed only in p are one window now.
+        model.windows.dedup_by(|later, earlier| {
+            later.ids == earlier.ids && later.measured == earlier.measured
+        });
         model
-            .windows
-            .dedup_by(|later, earlier| later.ids == earlier.ids);
+    }
+
+    /// The same model with entry `(k, k)` of the matrix `key` (one of [`MATRIX_KEYS`]) at
+    /// `value` in every parameter set: the configured matrix and every override's (`fit`,
+    /// docs/theory.md §16).
+    pub fn with_diagonal_entry(&self, key: &str, k: usize, value: f64) -> Model {
+        let mut model = self.clone();
+        for set in &mut model.params {
+            set.get_mut(key)[(k, k)] = value;
+        }
         model
     }
 

@@ -25,7 +25,9 @@ use crate::model::Model;
 use crate::smoother::{Smoother, human_bytes, memory_bytes};
 
 use score::Scores;
-pub use source::{ArraySource, FileSource, ReaderTruth, SliceTruth, StepSource, TruthSource};
+pub use source::{
+    ArraySource, FileSource, ReaderTruth, SliceTruth, StepSource, TruthSource, read_all,
+};
 pub use spec::{CheckedSpec, RunSpec, Setting, SpecError, check_update};
 
 /// Power-iteration steps of the quick stability warning (`check` takes more).
@@ -412,6 +414,38 @@ impl EstimateSink for Collect {
     fn note(&mut self, note: Note) {
         self.notes.push(note);
     }
+}
+
+/// The log density of each step's measurements given the steps before, `log p(y(t) | y(1..t−1))`
+/// under `model`, as the filter of `spec` computes it (docs/theory.md §10: the mixture update's
+/// `Σ_i log(p e^{ℓ₁} + (1 − p) e^{ℓ₀})`, or with known dropouts the Gaussian innovations
+/// density of the elements received): `T` values, over measurements and inputs in memory as
+/// [`estimate`] takes them. Nothing else of a run is done (no estimates kept, no checks, no
+/// warnings): this is what `fit` evaluates hundreds of times (docs/theory.md §16). A filter
+/// without a density (Nahi's linear update with unknown dropouts) is refused.
+pub fn log_likelihood(
+    model: &Model,
+    spec: &CheckedSpec,
+    y: &[f64],
+    u: Option<&[f64]>,
+) -> Result<Vec<f64>> {
+    check_measurements(model, y)?;
+    let mut source = ArraySource::new(model, y, u)?;
+    let mut filter = spec.build_filter(model)?;
+    let mut y_t = vec![0.0; model.subsystems * model.dims.q];
+    let mut u_t = vec![0.0; model.subsystems * model.dims.m];
+    let mut densities = Vec::with_capacity(y.len() / y_t.len().max(1));
+    while let Some(t) = source.next_step(&mut y_t, &mut u_t)? {
+        model.blank_unmeasured(t, &mut y_t);
+        filter.step(&y_t, &u_t)?;
+        densities.push(filter.log_likelihood().ok_or_else(|| {
+            Error::Usage(
+                "log-likelihood: the linear update with unknown dropouts has no density; use update = mixture or dropouts = known".into(),
+            )
+        })?);
+    }
+    source.finish(densities.len())?;
+    Ok(densities)
 }
 
 /// Refuses a measurement that is neither a finite number nor NaN (an element not in the

@@ -201,3 +201,20 @@ impl TruthSource for SliceTruth<'_> {
         }
     }
 }
+
+/// Every step of `source` in memory: `y` (`T × N × q` values) and `u` (`T × N × m`), as
+/// [`super::estimate`] and [`super::log_likelihood`] take them (a front end that reads a file
+/// whole, as `fit` does).
+pub fn read_all(model: &Model, source: &mut dyn StepSource) -> Result<(Vec<f64>, Vec<f64>)> {
+    let mut y_t = vec![0.0; model.subsystems * model.dims.q];
+    let mut u_t = vec![0.0; model.subsystems * model.dims.m];
+    let (mut y, mut u) = (Vec::new(), Vec::new());
+    let mut steps = 0;
+    while let Some(t) = source.next_step(&mut y_t, &mut u_t)? {
+        y.extend_from_slice(&y_t);
+        u.extend_from_slice(&u_t);
+        steps = t;
+    }
+    source.finish(steps)?;
+    Ok((y, u))
+}

@@ -15,6 +15,7 @@ mod config_forms;
 mod estimate_cli;
 mod estimator;
 mod evaluate_cli;
+mod fit;
 mod flags;
 mod gaps;
 mod innovations;

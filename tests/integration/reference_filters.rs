@@ -772,7 +772,7 @@ fn single_two_rows() -> Model {
 
 /// Loses measurement elements on their own, in a pattern that covers none, some and all of
 /// a step's.
-fn lose_some(y: &[f64], t: usize) -> Vec<f64> {
+pub fn lose_some(y: &[f64], t: usize) -> Vec<f64> {
     y.iter()
         .enumerate()
         .map(|(k, &v)| {
@@ -871,17 +871,13 @@ fn known_dropout_log_likelihood_is_the_kalman_filters_for_one_subsystem() {
     }
 }
 
-/// The centralized known-dropout filter's log-likelihood is the log density of all received
-/// measurements at once, a Gaussian built here from the dense lifted matrices: the stacked
-/// states `X_1..X_T` have mean `μ_{t+1} = A_t μ_t + U_t u_t` and covariances
-/// `Cov(X_{t+1}, X_s) = A_t Cov(X_t, X_s)`, `Var(X_{t+1}) = A_t Var(X_t) A_tᵀ + Q`, and the
-/// received elements are `J x + R u + d`.
-#[test]
-fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
-    let model = model_from(CHAIN);
-    let run = simulate_run(&model, 5);
-    let (n, q, big_n) = (2, 2, model.subsystems);
-    let (size, steps) = (big_n * n, run.y.len());
+/// The log density of all the measurements received (`NaN`: not received), a Gaussian built
+/// here from the dense lifted matrices: the stacked states `X_1..X_T` have mean
+/// `μ_{t+1} = A_t μ_t + U_t u_t` and covariances `Cov(X_{t+1}, X_s) = A_t Cov(X_t, X_s)`,
+/// `Var(X_{t+1}) = A_t Var(X_t) A_tᵀ + Q`, and the received elements are `J x + R u + d`.
+pub fn dense_log_density(model: &Model, ys: &[Vec<f64>], us: &[Vec<f64>]) -> f64 {
+    let (n, q, m, big_n) = (model.dims.n, model.dims.q, model.dims.m, model.subsystems);
+    let (size, steps) = (big_n * n, ys.len());
     let mut mean = DVector::zeros(steps * size);
     let mut cov = DMatrix::zeros(steps * size, steps * size);
     for i in 0..big_n {
@@ -891,9 +887,9 @@ fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
             .copy_from(&model.initial_cov);
     }
     for t0 in 0..steps - 1 {
-        let (a, b) = dense_lifted(&model, t0 + 1);
+        let (a, b) = dense_lifted(model, t0 + 1);
         let (now, next) = (t0 * size, (t0 + 1) * size);
-        let m_next = &a * mean.rows(now, size) + &b * DVector::from_column_slice(&run.u[t0]);
+        let m_next = &a * mean.rows(now, size) + &b * DVector::from_column_slice(&us[t0]);
         mean.rows_mut(next, size).copy_from(&m_next);
         for s in 0..=t0 {
             let c = &a * cov.view((now, s * size), (size, size));
@@ -911,19 +907,15 @@ fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
         cov.view_mut((next, next), (size, size)).copy_from(&v);
     }
     // The received elements: (t, k) with k = i·q + row.
-    let mut received = Vec::new();
-    let mut filter = CentralizedFilter::new(&model, true, 100).unwrap();
-    let mut loglik = 0.0;
-    for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
-        let y = lose_some(y, t0 + 1);
-        filter.step(&y, u).unwrap();
-        loglik += filter.log_likelihood().unwrap();
-        received.extend(
+    let received: Vec<(usize, usize, f64)> = ys
+        .iter()
+        .enumerate()
+        .flat_map(|(t0, y)| {
             (0..big_n * q)
                 .filter(|&k| !y[k].is_nan())
-                .map(|k| (t0, k, y[k])),
-        );
-    }
+                .map(move |k| (t0, k, y[k]))
+        })
+        .collect();
     let obs = received.len();
     let mut h = DMatrix::zeros(obs, steps * size);
     let mut noise = DMatrix::zeros(obs, obs);
@@ -934,7 +926,8 @@ fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
         for c in 0..n {
             h[(row, t0 * size + i * n + c)] = prm.J[(kk, c)];
         }
-        e[row] = y - (&prm.R * DVector::from_column_slice(&run.u[t0][i..i + 1]))[kk];
+        let u_i = DVector::from_column_slice(&us[t0][i * m..(i + 1) * m]);
+        e[row] = y - (&prm.R * u_i)[kk];
         for (col, &(t1, k1, _)) in received.iter().enumerate() {
             if t1 == t0 && k1 / q == i {
                 noise[(row, col)] = prm.M[(kk, k1 % q)];
@@ -948,11 +941,28 @@ fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
         .expect("the measurements' covariance is positive definite");
     let log_det: f64 = (0..obs).map(|k| 2.0 * l.l()[(k, k)].ln()).sum();
     let white = l.l().solve_lower_triangular(&e).unwrap();
-    let dense =
-        -0.5 * (obs as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + white.norm_squared());
+    -0.5 * (obs as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + white.norm_squared())
+}
+
+/// The centralized known-dropout filter's log-likelihood is the log density of all received
+/// measurements at once ([`dense_log_density`]).
+#[test]
+fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
+    let model = model_from(CHAIN);
+    let run = simulate_run(&model, 5);
+    let mut filter = CentralizedFilter::new(&model, true, 100).unwrap();
+    let mut loglik = 0.0;
+    let mut ys = Vec::new();
+    for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
+        let y = lose_some(y, t0 + 1);
+        filter.step(&y, u).unwrap();
+        loglik += filter.log_likelihood().unwrap();
+        ys.push(y);
+    }
+    let dense = dense_log_density(&model, &ys, &run.u);
     assert!(
         (loglik - dense).abs() < 1e-9 * dense.abs(),
-        "filter {loglik} vs dense {dense} over {obs} measurements"
+        "filter {loglik} vs dense {dense}"
     );
 }
 
