@@ -9,7 +9,7 @@ use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{Dropouts, FilterKind};
 use sisfilt::fit::{FitSpec, ParamGroup, fit};
 
-use crate::common::{Csv, model_from, shipped_config, simulate_run, sisfilt};
+use crate::common::{Csv, model_from, platoon_with_gaps, shipped_config, simulate_run, sisfilt};
 use crate::reference_filters::{CHAIN, dense_log_density, lose_some};
 
 /// `CHAIN` with every measurement arriving, over 40 steps, with the diagonals of `Q` and `M`
@@ -386,4 +386,69 @@ fn candidates_that_are_no_model_are_handled() {
     assert!(m[0].estimate * m[1].estimate > 0.04, "{m:?}");
     assert!(fitted.report.loglik.is_finite() && fitted.report.loglik >= fitted.report.loglik_start);
     assert!(fitted.model.param_set(0).M.clone().cholesky().is_some());
+}
+
+/// Gaps are read and skipped as `estimate` does: on the platoon with empty cells, `fit`'s
+/// log-likelihood at the configured values is the one `estimate` reports for the same filter
+/// and update (1e−12 relative), and the fit runs to an interior optimum.
+#[test]
+fn fit_reads_gaps_as_estimate_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let meas = platoon_with_gaps(dir.path(), 60, "gaps.csv", |t, i| {
+        [(t + i) % 5 == 0, (t * i) % 7 == 3]
+    });
+    let meas = meas.to_str().unwrap();
+    let estimated = json(&run_in(
+        dir.path(),
+        &[
+            "estimate", "--meas", meas, "--filter", "joint", "--update", "mixture", "--format",
+            "json",
+        ],
+    ));
+    let report = json(&run_in(
+        dir.path(),
+        &[
+            "fit", "--meas", meas, "--params", "p,M", "--format", "json", "-q",
+        ],
+    ));
+    let (start, loglik) = (
+        report["loglik_start"].as_f64().unwrap(),
+        estimated["loglik"].as_f64().unwrap(),
+    );
+    assert!(
+        (start - loglik).abs() <= 1e-12 * loglik.abs(),
+        "{start} vs {loglik}"
+    );
+    assert!(report["loglik"].as_f64().unwrap() >= start);
+    for p in report["parameters"].as_array().unwrap() {
+        assert!(p["se"].as_f64().is_some(), "{p}");
+    }
+}
+
+/// A config whose `p` varies (a list per subsystem, and overrides) is fitted with one `p`,
+/// and the report says so.
+#[test]
+fn a_p_that_varies_is_fitted_as_one_value_with_a_warning() {
+    let model = model_from(CHAIN);
+    let run = simulate_run(&model, 2);
+    let spec = FitSpec {
+        params: vec![ParamGroup::P],
+        filter: FilterKind::Centralized,
+        max_iter: 3,
+        ..FitSpec::default()
+    }
+    .check()
+    .unwrap();
+    let fitted = fit(&model, &spec, &run.y.concat(), Some(&run.u.concat()), None).unwrap();
+    assert!(
+        fitted.report.warnings[0].starts_with("p varies in the config (across subsystems)"),
+        "{:?}",
+        fitted.report.warnings
+    );
+    let p = fitted.report.parameters[0].estimate;
+    for t in 1..=25 {
+        for i in 1..=4 {
+            assert_eq!(fitted.model.p(t, i), p);
+        }
+    }
 }
