@@ -261,7 +261,10 @@ pub fn fit(
                     NoInterval::Boundary => "on the boundary of its range",
                     NoInterval::Flat => "the log-likelihood is flat or not concave there",
                 },
-                p.value(theta[k])
+                match p {
+                    Parameter::P => format!("{:.7}", p.value(theta[k])),
+                    _ => format!("{:.4e}", p.value(theta[k])),
+                }
             ));
         }
     }
