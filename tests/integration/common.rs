@@ -333,3 +333,53 @@ pub fn platoon_with_gaps(
     }
     write_file(dir, name, &(lines.join("\n") + "\n"))
 }
+
+/// The Python of the tests that need numpy, pandas, pytest and maturin (files written by numpy
+/// and pandas, the Python package): `SISFILT_TEST_PYTHON`, else the virtual environment
+/// `target/test-python`, made with those packages (from PyPI) the first time a test needs it.
+/// `None`, said on standard error, when there is none and none can be made: those tests then
+/// pass without running.
+pub fn test_python() -> Option<&'static str> {
+    static PYTHON: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    PYTHON
+        .get_or_init(|| {
+            let ready = |python: &Path| {
+                std::process::Command::new(python)
+                    .args([
+                        "-c",
+                        "import sys, numpy, pandas, pytest, maturin; assert sys.prefix != sys.base_prefix",
+                    ])
+                    .output()
+                    .is_ok_and(|o| o.status.success())
+            };
+            if let Some(python) = std::env::var_os("SISFILT_TEST_PYTHON") {
+                let python = PathBuf::from(python);
+                if ready(&python) {
+                    return Some(python.display().to_string());
+                }
+                eprintln!(
+                    "skipped: SISFILT_TEST_PYTHON={} is not a virtual environment with numpy, pandas, pytest and maturin",
+                    python.display()
+                );
+                return None;
+            }
+            let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-python");
+            let python = venv.join("bin/python");
+            if !ready(&python) {
+                let succeeds = |c: &mut std::process::Command| c.status().is_ok_and(|s| s.success());
+                let made = succeeds(std::process::Command::new("python3").args(["-m", "venv"]).arg(&venv))
+                    && succeeds(std::process::Command::new(&python).args([
+                        "-m", "pip", "install", "--quiet", "numpy", "pandas", "pytest", "maturin",
+                    ]));
+                if !made || !ready(&python) {
+                    eprintln!(
+                        "skipped: could not make {} with numpy, pandas, pytest and maturin (python3 -m venv, then pip from PyPI); set SISFILT_TEST_PYTHON",
+                        venv.display()
+                    );
+                    return None;
+                }
+            }
+            Some(python.display().to_string())
+        })
+        .as_deref()
+}

@@ -23,6 +23,7 @@ mod joint_filter;
 mod plot_cli;
 mod properties;
 mod python_files;
+mod python_package;
 mod reference_filters;
 mod run_api;
 mod settings;

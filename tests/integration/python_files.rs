@@ -4,28 +4,12 @@
 //! byte for byte, as the same numbers written by hand; a DataFrame written with its index is
 //! refused with a hint.
 //!
-//! Python comes from `SISFILT_TEST_PYTHON` (CI sets it to a venv with numpy and pandas) or
-//! `python3`; without numpy and pandas the tests say so and pass.
+//! Python comes from [`test_python`]; without one the tests say so and pass.
 
 use std::path::Path;
 use std::process::Command;
 
-use crate::common::{one_error_line, platoon_with_gaps, shipped_config, sisfilt};
-
-/// A Python with numpy and pandas, or `None` (said on standard error).
-fn python() -> Option<String> {
-    let python = std::env::var("SISFILT_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
-    let ok = Command::new(&python)
-        .args(["-c", "import numpy, pandas"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !ok {
-        eprintln!(
-            "skipped: {python} cannot import numpy and pandas (CI installs them; set SISFILT_TEST_PYTHON)"
-        );
-    }
-    ok.then_some(python)
-}
+use crate::common::{one_error_line, platoon_with_gaps, shipped_config, sisfilt, test_python};
 
 /// Runs `script` with `python` in `dir`.
 fn run_python(python: &str, dir: &Path, script: &str) {
@@ -61,7 +45,7 @@ fn estimates(dir: &Path, meas: &str, inputs: &str, args: &[&str]) -> Vec<u8> {
 
 #[test]
 fn files_written_by_numpy_and_pandas_are_read_as_they_are() {
-    let Some(python) = python() else { return };
+    let Some(python) = test_python() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     // Car 3's row empty at t = 4..6, car 5's second element empty throughout.
@@ -70,7 +54,7 @@ fn files_written_by_numpy_and_pandas_are_read_as_they_are() {
         [silent, silent || i == 5]
     });
     run_python(
-        &python,
+        python,
         dir,
         r##"
 import numpy as np, pandas as pd

@@ -1,0 +1,78 @@
+"""Type stubs of the compiled module (python/src/lib.rs)."""
+
+from os import PathLike
+from typing import Any, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import numpy.typing as npt
+
+ArrayLike = npt.ArrayLike
+__version__: str
+
+class Model:
+    """A chain model, checked as the command line checks a config."""
+
+    @staticmethod
+    def from_toml(path: Union[str, PathLike]) -> "Model": ...
+    @staticmethod
+    def from_toml_str(text: str, name: str = "<string>") -> "Model": ...
+    def with_(self, **changes: Any) -> "Model":
+        """A changed copy: ``p=0.7``, ``M=[[0.02]]``, ``steps=500``, or a dotted key."""
+    def check(self) -> dict: ...
+    def to_toml(self) -> str: ...
+    @property
+    def subsystems(self) -> int: ...
+    @property
+    def n(self) -> int: ...
+    @property
+    def q(self) -> int: ...
+    @property
+    def m(self) -> int: ...
+    @property
+    def steps(self) -> Optional[int]: ...
+
+class Estimates:
+    """The estimates of a run."""
+
+    x: np.ndarray
+    P: np.ndarray
+    arrival: Optional[np.ndarray]
+    nis: np.ndarray
+    loglik: Optional[float]
+    innovations: dict
+    notes: list
+    kind: str
+    def to_pandas(self) -> Any: ...
+
+def simulate(model: Model, seed: Optional[int] = None, steps: Optional[int] = None) -> dict: ...
+def estimate(
+    model: Model,
+    y: ArrayLike,
+    u: Optional[ArrayLike] = None,
+    *,
+    filter: str = "distributed",
+    update: str = "linear",
+    dropouts: str = "unknown",
+    smooth: bool = False,
+    predicted: bool = False,
+    paper: bool = False,
+    solver: Optional[str] = None,
+    second_moment: Optional[str] = None,
+    interconnect_from: Optional[str] = None,
+    band: Optional[int] = None,
+    band_tol: Optional[float] = None,
+    loading: Optional[float] = None,
+    max_lifted: int = ...,
+    max_memory: Optional[int] = None,
+) -> Estimates: ...
+def fit(
+    model: Model,
+    y: ArrayLike,
+    u: Optional[ArrayLike] = None,
+    *,
+    params: Optional[Sequence[str]] = None,
+    filter: str = "joint",
+    band: Optional[int] = None,
+    dropouts: str = "unknown",
+    max_iter: int = 200,
+) -> Tuple[dict, Model]: ...

@@ -1,0 +1,523 @@
+//! The Python package `sisfilt`: a thin layer over the library's run API, numpy in and out.
+//! Every computation is the library's (`sisfilt::run`, `sisfilt::fit`, `sisfilt::simulate`);
+//! this file only converts arrays and options, and errors into Python exceptions:
+//! `ValueError` for bad input (the command line's exit 2), `ArithmeticError` where the
+//! numerics broke down (naming `t` and `i`), `RuntimeError` for anything else.
+
+use numpy::ndarray::{ArrayD, IxDyn};
+use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyArithmeticError, PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PySlice};
+
+use sisfilt::choice::Choice;
+use sisfilt::config::{ConfigSetting, ConfigSource};
+use sisfilt::filter::centralized::DEFAULT_MAX_LIFTED;
+use sisfilt::fit::{FitSpec, ParamGroup};
+use sisfilt::run::RunSpec;
+
+/// A library error as the Python exception of its kind.
+fn py_err(e: sisfilt::Error) -> PyErr {
+    let numerical = match &e {
+        sisfilt::Error::Numerical { .. } => true,
+        sisfilt::Error::InRun { error, .. } => matches!(**error, sisfilt::Error::Numerical { .. }),
+        _ => false,
+    };
+    if numerical {
+        PyArithmeticError::new_err(e.to_string())
+    } else if e.exit_code() == 2 {
+        PyValueError::new_err(e.to_string())
+    } else {
+        PyRuntimeError::new_err(e.to_string())
+    }
+}
+
+/// The value of the option `what` called `name`, or a `ValueError` listing the names.
+fn choice<T: Choice>(what: &str, name: &str) -> PyResult<T> {
+    T::from_name(name).ok_or_else(|| {
+        let names: Vec<&str> = T::VARIANTS.iter().map(|v| v.name).collect();
+        PyValueError::new_err(format!(
+            "{what}: expected one of {}, found {name:?}",
+            names.join(", ")
+        ))
+    })
+}
+
+/// A serialisable value as the Python object its JSON reads as.
+fn to_python<'py>(py: Python<'py>, value: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(value)
+        .map_err(|e| PyRuntimeError::new_err(format!("cannot convert to Python: {e}")))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
+/// `values` as a float64 array of `shape`.
+fn array<'py>(py: Python<'py>, values: Vec<f64>, shape: &[usize]) -> PyResult<Bound<'py, PyAny>> {
+    let a = ArrayD::from_shape_vec(IxDyn(shape), values)
+        .map_err(|e| PyRuntimeError::new_err(format!("array of shape {shape:?}: {e}")))?;
+    Ok(a.into_pyarray(py).into_any())
+}
+
+/// The values of `a` in C order after checking its shape against `expected` (`None`: any
+/// length on that axis), or a `ValueError` naming `what`.
+fn values(
+    a: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    what: &str,
+    expected: &[Option<usize>],
+    names: &str,
+) -> PyResult<Vec<f64>> {
+    let shape = a.shape();
+    let fits = shape.len() == expected.len()
+        && shape
+            .iter()
+            .zip(expected)
+            .all(|(&s, e)| e.is_none_or(|e| e == s));
+    if !fits {
+        let want: Vec<String> = expected
+            .iter()
+            .map(|e| e.map_or("any".to_string(), |e| e.to_string()))
+            .collect();
+        return Err(PyValueError::new_err(format!(
+            "{what}: expected an array of shape {names} = ({}), found {shape:?}",
+            want.join(", ")
+        )));
+    }
+    Ok(a.as_array().iter().copied().collect())
+}
+
+/// A chain model: the matrices, `N`, the dropout probabilities and the initial conditions,
+/// checked as the command line checks a config.
+#[pyclass(frozen, module = "sisfilt")]
+struct Model {
+    source: ConfigSource,
+    inner: sisfilt::model::Model,
+}
+
+impl Model {
+    fn from_source(source: ConfigSource) -> PyResult<Self> {
+        let inner = sisfilt::model::Model::from_config(&source).map_err(py_err)?;
+        Ok(Self { source, inner })
+    }
+}
+
+#[pymethods]
+impl Model {
+    /// The model of the TOML config file at `path` (relative paths in it resolve against its
+    /// folder).
+    #[staticmethod]
+    fn from_toml(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
+        let source = py
+            .detach(|| ConfigSource::from_file(&path))
+            .map_err(py_err)?;
+        Self::from_source(source)
+    }
+
+    /// The model of config TOML held in a string; `name` names it in messages.
+    #[staticmethod]
+    #[pyo3(signature = (text, name = "<string>"))]
+    fn from_toml_str(text: String, name: &str) -> PyResult<Self> {
+        Self::from_source(ConfigSource::from_text(name, ".".into(), text).map_err(py_err)?)
+    }
+
+    /// A changed copy, as the command line's `--set` makes it: `p=0.7`, `M=[[0.02]]` (a
+    /// matrix of `[model]` by its letter), `steps=500`, or any key by its dotted path
+    /// (`**{"override[1].p": 0.3}`); values are numbers, booleans, strings, lists or arrays.
+    #[pyo3(signature = (**changes))]
+    fn with_(&self, py: Python<'_>, changes: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+        let mut settings = Vec::new();
+        let json = py.import("json")?;
+        for (key, value) in changes
+            .map(|d| d.iter().collect::<Vec<_>>())
+            .unwrap_or_default()
+        {
+            let key: String = key.extract()?;
+            let path = match key.as_str() {
+                "p" => "dropout.p".to_string(),
+                k if sisfilt::model::MATRIX_KEYS.contains(&k) => format!("model.{k}"),
+                k => k.to_string(),
+            };
+            let value = if value.hasattr("tolist")? {
+                value.call_method0("tolist")?
+            } else {
+                value
+            };
+            let text: String = json.call_method1("dumps", (value,))?.extract()?;
+            settings.push(ConfigSetting {
+                key: path,
+                value: text,
+            });
+        }
+        Self::from_source(
+            self.source
+                .clone()
+                .with_settings(&settings)
+                .map_err(py_err)?,
+        )
+    }
+
+    /// The figures of `sisfilt check` as a dict.
+    fn check<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let model = self.inner.clone();
+        let report = py
+            .detach(|| sisfilt::check::check(&model))
+            .map_err(py_err)?;
+        to_python(py, &report)
+    }
+
+    /// Chain length `N`.
+    #[getter]
+    fn subsystems(&self) -> usize {
+        self.inner.subsystems
+    }
+
+    /// State dimension `n` of each subsystem.
+    #[getter]
+    fn n(&self) -> usize {
+        self.inner.dims.n
+    }
+
+    /// Measurement dimension `q`.
+    #[getter]
+    fn q(&self) -> usize {
+        self.inner.dims.q
+    }
+
+    /// Input dimension `m`.
+    #[getter]
+    fn m(&self) -> usize {
+        self.inner.dims.m
+    }
+
+    /// The config's `steps`, or `None`.
+    #[getter]
+    fn steps(&self) -> Option<usize> {
+        self.inner.steps
+    }
+
+    /// The config as TOML (with every change of `with_` applied).
+    fn to_toml(&self) -> PyResult<String> {
+        Ok(ConfigSource::from_raw(
+            &self.source.name,
+            self.source.dir.clone(),
+            self.source.raw.clone(),
+        )
+        .map_err(py_err)?
+        .text)
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Model({}: N = {}, n = {}, q = {}, m = {})",
+            self.source.name,
+            self.inner.subsystems,
+            self.inner.dims.n,
+            self.inner.dims.q,
+            self.inner.dims.m
+        )
+    }
+}
+
+/// Simulates the chain for `steps` steps (default: the config's) with `seed` (default: the
+/// config's): a dict of `x[T,N,n]`, `y[T,N,q]` (a lost measurement holds its noise, as the
+/// paper's model says; NaN where a subsystem has no sensor), `gamma[T,N]` (True where the
+/// measurement arrived) and `u[T,N,m]`.
+#[pyfunction]
+#[pyo3(signature = (model, seed = None, steps = None))]
+fn simulate<'py>(
+    py: Python<'py>,
+    model: &Model,
+    seed: Option<u64>,
+    steps: Option<usize>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let m = model.inner.clone();
+    let steps = match steps {
+        Some(0) => return Err(PyValueError::new_err("steps: expected at least 1")),
+        Some(s) => s,
+        None => m.horizon().map_err(py_err)?,
+    };
+    let seed = seed.unwrap_or(m.seed);
+    let (x, y, gamma, u) = py
+        .detach(|| -> sisfilt::Result<_> {
+            let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
+            let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let mut y_t = vec![0.0; m.subsystems * m.dims.q];
+            sisfilt::simulate::simulate(&m, steps, seed, &mut inputs, |s| {
+                x.extend_from_slice(s.x);
+                y_t.copy_from_slice(s.y);
+                m.blank_unmeasured(s.t, &mut y_t);
+                y.extend_from_slice(&y_t);
+                gamma.extend_from_slice(s.gamma);
+                u.extend_from_slice(s.u);
+                Ok(())
+            })?;
+            Ok((x, y, gamma, u))
+        })
+        .map_err(py_err)?;
+    let (big_n, d) = (m.subsystems, m.dims);
+    let out = PyDict::new(py);
+    out.set_item("x", array(py, x, &[steps, big_n, d.n])?)?;
+    out.set_item("y", array(py, y, &[steps, big_n, d.q])?)?;
+    let gamma = ArrayD::from_shape_vec(IxDyn(&[steps, big_n]), gamma)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    out.set_item("gamma", gamma.into_pyarray(py))?;
+    out.set_item("u", array(py, u, &[steps, big_n, d.m])?)?;
+    Ok(out)
+}
+
+/// The inputs `u[T,N,m]` as values, checked against `y`'s `T`; `None` gives the model's own.
+fn inputs(
+    model: &sisfilt::model::Model,
+    u: Option<PyArrayLikeDyn<'_, f64, AllowTypeChange>>,
+    steps: usize,
+) -> PyResult<Option<Vec<f64>>> {
+    u.map(|u| {
+        values(
+            &u,
+            "u",
+            &[Some(steps), Some(model.subsystems), Some(model.dims.m)],
+            "(T, N, m)",
+        )
+    })
+    .transpose()
+}
+
+/// The measurements `y[T,N,q]` as values (NaN: not in the data) and `T`.
+fn measurements(
+    model: &sisfilt::model::Model,
+    y: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+) -> PyResult<(Vec<f64>, usize)> {
+    let values = values(
+        y,
+        "y",
+        &[None, Some(model.subsystems), Some(model.dims.q)],
+        "(T, N, q)",
+    )?;
+    let steps = y.shape()[0];
+    if steps == 0 {
+        return Err(PyValueError::new_err("y: holds no step (T = 0)"));
+    }
+    Ok((values, steps))
+}
+
+/// The estimates of a run: `x[T,N,n]`, the diagonal blocks `P[T,N,n,n]` of the error
+/// covariance, `arrival[T,N]` (`π`, with the mixture update) or None, `nis[T,N]` (NaN where
+/// nothing was received), `loglik` (None without a density), the innovation check as a dict,
+/// and the notes the command line prints as warnings.
+#[pyclass(frozen, module = "sisfilt")]
+struct Estimates {
+    #[pyo3(get)]
+    x: Py<PyAny>,
+    #[pyo3(get, name = "P")]
+    p: Py<PyAny>,
+    #[pyo3(get)]
+    arrival: Option<Py<PyAny>>,
+    #[pyo3(get)]
+    nis: Py<PyAny>,
+    #[pyo3(get)]
+    loglik: Option<f64>,
+    #[pyo3(get)]
+    innovations: Py<PyAny>,
+    #[pyo3(get)]
+    notes: Vec<String>,
+    /// What the rows hold: `filtered`, `predicted` or `smoothed`.
+    #[pyo3(get)]
+    kind: String,
+}
+
+#[pymethods]
+impl Estimates {
+    /// The columns of the estimates CSV (`t,i,x1..xn,P1_1,P1_2..Pn_n`, then `arrival` and
+    /// `nis`; `t_given` for `t` with predicted estimates) as a pandas DataFrame, one row per
+    /// `(t, i)`. Needs pandas.
+    fn to_pandas<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let pandas = py.import("pandas").map_err(|_| {
+            PyErr::new::<pyo3::exceptions::PyImportError, _>(
+                "to_pandas needs pandas: pip install pandas",
+            )
+        })?;
+        let x = self.x.bind(py);
+        let shape: Vec<usize> = x.getattr("shape")?.extract()?;
+        let (steps, big_n, n) = (shape[0], shape[1], shape[2]);
+        let np = py.import("numpy")?;
+        let columns = PyDict::new(py);
+        let rows = steps * big_n;
+        let t: Vec<i64> = (0..rows).map(|r| (r / big_n + 1) as i64).collect();
+        let i: Vec<i64> = (0..rows).map(|r| (r % big_n + 1) as i64).collect();
+        let step_name = if self.kind == "predicted" {
+            "t_given"
+        } else {
+            "t"
+        };
+        columns.set_item(step_name, np.call_method1("asarray", (t,))?)?;
+        columns.set_item("i", np.call_method1("asarray", (i,))?)?;
+        let x_rows = x.call_method1("reshape", (rows, n))?;
+        for k in 0..n {
+            columns.set_item(
+                format!("x{}", k + 1),
+                x_rows.get_item((PySlice::full(py), k))?,
+            )?;
+        }
+        let p_rows = self.p.bind(py).call_method1("reshape", (rows, n, n))?;
+        for r in 0..n {
+            for c in r..n {
+                columns.set_item(
+                    format!("P{}_{}", r + 1, c + 1),
+                    p_rows.get_item((PySlice::full(py), r, c))?,
+                )?;
+            }
+        }
+        if let Some(arrival) = &self.arrival {
+            columns.set_item(
+                "arrival",
+                arrival.bind(py).call_method1("reshape", (rows,))?,
+            )?;
+        }
+        columns.set_item("nis", self.nis.bind(py).call_method1("reshape", (rows,))?)?;
+        pandas.call_method1("DataFrame", (columns,))
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
+        let shape: Vec<usize> = self.x.bind(py).getattr("shape")?.extract()?;
+        Ok(format!(
+            "Estimates({}, x of shape {shape:?}, loglik {:?})",
+            self.kind, self.loglik
+        ))
+    }
+}
+
+/// Runs a filter (or smoother) over measurements `y[T,N,q]` (NaN marks a value not in the
+/// data, as an empty cell does in a file) with inputs `u[T,N,m]` (default: the model's own):
+/// every option of `sisfilt estimate`, by the same names in snake case.
+#[pyfunction]
+#[pyo3(signature = (
+    model, y, u = None, *, filter = "distributed", update = "linear", dropouts = "unknown",
+    smooth = false, predicted = false, paper = false, solver = None, second_moment = None,
+    interconnect_from = None, band = None, band_tol = None, loading = None,
+    max_lifted = DEFAULT_MAX_LIFTED, max_memory = None
+))]
+#[allow(clippy::too_many_arguments)]
+fn estimate(
+    py: Python<'_>,
+    model: &Model,
+    y: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    u: Option<PyArrayLikeDyn<'_, f64, AllowTypeChange>>,
+    filter: &str,
+    update: &str,
+    dropouts: &str,
+    smooth: bool,
+    predicted: bool,
+    paper: bool,
+    solver: Option<&str>,
+    second_moment: Option<&str>,
+    interconnect_from: Option<&str>,
+    band: Option<usize>,
+    band_tol: Option<f64>,
+    loading: Option<f64>,
+    max_lifted: usize,
+    max_memory: Option<u64>,
+) -> PyResult<Estimates> {
+    let spec = RunSpec {
+        filter: choice("filter", filter)?,
+        update: choice("update", update)?,
+        dropouts: choice("dropouts", dropouts)?,
+        paper,
+        solver: solver.map(|s| choice("solver", s)).transpose()?,
+        second_moment: second_moment
+            .map(|s| choice("second_moment", s))
+            .transpose()?,
+        interconnect_from: interconnect_from
+            .map(|s| choice("interconnect_from", s))
+            .transpose()?,
+        band,
+        band_tol,
+        loading,
+        smooth,
+        predicted,
+        max_lifted,
+        max_memory,
+        nis_column: true,
+    }
+    .check()
+    .map_err(|e| py_err(e.into()))?;
+    let m = model.inner.clone();
+    let (y, steps) = measurements(&m, &y)?;
+    let u = inputs(&m, u, steps)?;
+    let run = py
+        .detach(|| sisfilt::run::estimate(&m, &spec, &y, u.as_deref(), None))
+        .map_err(py_err)?;
+    let (big_n, n) = (m.subsystems, m.dims.n);
+    Ok(Estimates {
+        x: array(py, run.x, &[steps, big_n, n])?.unbind(),
+        p: array(py, run.p, &[steps, big_n, n, n])?.unbind(),
+        arrival: run
+            .arrival
+            .map(|a| array(py, a, &[steps, big_n]).map(Bound::unbind))
+            .transpose()?,
+        nis: array(py, run.nis, &[steps, big_n])?.unbind(),
+        loglik: run.report.summary.loglik,
+        innovations: to_python(py, &run.report.summary.innovations)?.unbind(),
+        notes: run.notes.iter().map(ToString::to_string).collect(),
+        kind: to_python(py, &spec.output())?.extract()?,
+    })
+}
+
+/// Fits `p` and the diagonals of `Q` and `M` to `y[T,N,q]` by maximum likelihood (docs/theory.md
+/// §16): returns the report (the JSON of `sisfilt fit` as a dict) and the fitted model.
+#[pyfunction]
+#[pyo3(signature = (
+    model, y, u = None, *, params = None, filter = "joint", band = None, dropouts = "unknown",
+    max_iter = sisfilt::fit::DEFAULT_MAX_ITER
+))]
+#[allow(clippy::too_many_arguments)]
+fn fit<'py>(
+    py: Python<'py>,
+    model: &Model,
+    y: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    u: Option<PyArrayLikeDyn<'_, f64, AllowTypeChange>>,
+    params: Option<Vec<String>>,
+    filter: &str,
+    band: Option<usize>,
+    dropouts: &str,
+    max_iter: usize,
+) -> PyResult<(Bound<'py, PyAny>, Model)> {
+    let dropouts: sisfilt::filter::Dropouts = choice("dropouts", dropouts)?;
+    let params = match params {
+        Some(names) => names
+            .iter()
+            .map(|n| n.parse::<ParamGroup>())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| py_err(e.into()))?,
+        None if dropouts == sisfilt::filter::Dropouts::Known => vec![ParamGroup::Q, ParamGroup::M],
+        None => vec![ParamGroup::P, ParamGroup::Q, ParamGroup::M],
+    };
+    let spec = FitSpec {
+        params,
+        filter: choice("filter", filter)?,
+        band,
+        dropouts,
+        max_iter,
+    }
+    .check()
+    .map_err(py_err)?;
+    let m = model.inner.clone();
+    let (y, steps) = measurements(&m, &y)?;
+    let u = inputs(&m, u, steps)?;
+    let fitted = py
+        .detach(|| sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), None))
+        .map_err(py_err)?;
+    let raw = fitted.fitted_config(&model.source.raw);
+    let source = ConfigSource::from_raw(&model.source.name, model.source.dir.clone(), raw)
+        .map_err(py_err)?;
+    Ok((to_python(py, &fitted.report)?, Model::from_source(source)?))
+}
+
+/// The Python module `sisfilt._sisfilt`, re-exported by `sisfilt`.
+#[pymodule]
+fn _sisfilt(module: &Bound<'_, PyModule>) -> PyResult<()> {
+    module.add_class::<Model>()?;
+    module.add_class::<Estimates>()?;
+    module.add_function(wrap_pyfunction!(simulate, module)?)?;
+    module.add_function(wrap_pyfunction!(estimate, module)?)?;
+    module.add_function(wrap_pyfunction!(fit, module)?)?;
+    module.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
