@@ -44,6 +44,34 @@ class Estimates:
     kind: str
     def to_pandas(self) -> Any: ...
 
+class Filter:
+    """A filter run step by step; equal to ``estimate`` on the same steps."""
+
+    def __init__(
+        self,
+        model: Model,
+        *,
+        filter: str = "distributed",
+        update: str = "linear",
+        dropouts: str = "unknown",
+        paper: bool = False,
+        solver: Optional[str] = None,
+        second_moment: Optional[str] = None,
+        interconnect_from: Optional[str] = None,
+        band: Optional[int] = None,
+        band_tol: Optional[float] = None,
+        loading: Optional[float] = None,
+        max_lifted: int = ...,
+    ) -> None: ...
+    def step(self, y_t: ArrayLike, u_t: Optional[ArrayLike] = None) -> Tuple[np.ndarray, np.ndarray]: ...
+    def predicted(self) -> Tuple[np.ndarray, np.ndarray]: ...
+    @property
+    def arrival(self) -> Optional[np.ndarray]: ...
+    @property
+    def loglik(self) -> Optional[float]: ...
+    @property
+    def t(self) -> int: ...
+
 def simulate(model: Model, seed: Optional[int] = None, steps: Optional[int] = None) -> dict: ...
 def estimate(
     model: Model,

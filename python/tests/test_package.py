@@ -195,3 +195,33 @@ def test_two_threads_filter_at_once(platoon_run):
         t.join()
     for r in results:
         np.testing.assert_array_equal(r, want)
+
+
+@pytest.mark.parametrize("options", [
+    {},
+    {"filter": "joint", "update": "mixture"},
+    {"filter": "centralized"},
+    {"dropouts": "known", "filter": "joint"},
+])
+def test_the_step_by_step_filter_equals_estimate(platoon_run, options):
+    y, u = arrays(platoon_run, "gaps.csv")
+    model = sisfilt.Model.from_toml(config("platoon.toml"))
+    est = sisfilt.estimate(model, y, u, **options)
+    live = sisfilt.Filter(model, **options)
+    loglik = 0.0
+    for t in range(y.shape[0]):
+        x, P = live.step(y[t], u[t])
+        np.testing.assert_array_equal(x, est.x[t])
+        np.testing.assert_array_equal(P, est.P[t])
+        if est.arrival is not None:
+            np.testing.assert_array_equal(live.arrival, est.arrival[t])
+        loglik += live.loglik or 0.0
+    assert live.t == y.shape[0]
+    if est.loglik is not None:
+        assert loglik == pytest.approx(est.loglik, rel=1e-12)
+    # Without u_t, the model's own inputs (the platoon's sine), as the files hold them.
+    again = sisfilt.Filter(model, **options)
+    for t in range(3):
+        np.testing.assert_array_equal(again.step(y[t])[0], est.x[t])
+    with pytest.raises(ValueError, match=r"y_t: expected an array of shape \(N, q\)"):
+        again.step(y[3][:, :1])
