@@ -32,6 +32,15 @@ pub enum RunInputs {
 }
 
 impl RunInputs {
+    /// The inputs of every run of `model` (`evaluate`): the inputs file its config names,
+    /// read for its `T` steps, or the inputs its config generates.
+    pub fn of_model(model: &Model) -> Result<Self> {
+        match InputStream::path(model, None) {
+            Some(_) => Self::read(InputStream::open(model, None)?, model, model.horizon()?),
+            None => Self::generated(model),
+        }
+    }
+
     /// The inputs the model's `[input]` generates; a model whose inputs are a file is refused,
     /// since the file is the front end's to read ([`RunInputs::read`]).
     pub fn generated(model: &Model) -> Result<Self> {

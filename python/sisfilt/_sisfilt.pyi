@@ -104,3 +104,17 @@ def fit(
     dropouts: str = "unknown",
     max_iter: int = 200,
 ) -> Tuple[dict, Model]: ...
+def evaluate(
+    model: Model,
+    runs: int,
+    *,
+    seed: Optional[int] = None,
+    burn_in: int = 0,
+    max_lifted: int = ...,
+    band: int = 2,
+    loading: Optional[float] = None,
+    filters: Optional[Sequence[str]] = None,
+    smooth: bool = False,
+    sweep_p: Optional[Sequence[float]] = None,
+    true_p: Optional[float] = None,
+) -> dict: ...

@@ -681,6 +681,79 @@ fn fit<'py>(
     Ok((to_python(py, &fitted.report)?, Model::from_source(source)?))
 }
 
+/// The Monte Carlo comparison of `sisfilt evaluate`: `runs` runs (seeds `seed..seed+runs−1`,
+/// default the config's) of every filter (or those named in `filters`) on the same simulated
+/// realisations; with `sweep_p`, once per assumed arrival probability. Returns the JSON of
+/// `evaluate --out` as a dict.
+#[pyfunction]
+#[pyo3(signature = (
+    model, runs, *, seed = None, burn_in = 0, max_lifted = DEFAULT_MAX_LIFTED,
+    band = sisfilt::filter::joint::DEFAULT_BAND, loading = None, filters = None, smooth = false,
+    sweep_p = None, true_p = None
+))]
+#[allow(clippy::too_many_arguments)]
+fn evaluate<'py>(
+    py: Python<'py>,
+    model: &Model,
+    runs: usize,
+    seed: Option<u64>,
+    burn_in: usize,
+    max_lifted: usize,
+    band: usize,
+    loading: Option<f64>,
+    filters: Option<Vec<String>>,
+    smooth: bool,
+    sweep_p: Option<Vec<f64>>,
+    true_p: Option<f64>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let filters = filters
+        .unwrap_or_default()
+        .iter()
+        .map(|name| choice("filters", name))
+        .collect::<PyResult<Vec<_>>>()?;
+    let m = model.inner.clone();
+    let opts = sisfilt::evaluate::EvaluateOptions {
+        runs,
+        seed: seed.unwrap_or(m.seed),
+        burn_in,
+        max_lifted,
+        band,
+        loading,
+        filters,
+        smooth,
+        true_p,
+    };
+    // As the command line names it: the config, then its settings.
+    let name = std::iter::once(model.source.name.clone())
+        .chain(model.source.settings.iter().map(|s| format!("--set {s}")))
+        .collect::<Vec<_>>()
+        .join(" ");
+    let value = py
+        .detach(|| -> sisfilt::Result<serde_json::Value> {
+            let inputs = sisfilt::inputs::RunInputs::of_model(&m)?;
+            Ok(match sweep_p {
+                Some(values) => serde_json::to_value(sisfilt::evaluate::sweep_p(
+                    &m,
+                    &inputs,
+                    &name,
+                    opts,
+                    &values,
+                    || {},
+                )?),
+                None => serde_json::to_value(sisfilt::evaluate::evaluate(
+                    &m,
+                    &inputs,
+                    &name,
+                    opts,
+                    || {},
+                )?),
+            }
+            .expect("an evaluation serialises"))
+        })
+        .map_err(py_err)?;
+    to_python(py, &value)
+}
+
 /// The Python module `sisfilt._sisfilt`, re-exported by `sisfilt`.
 #[pymodule]
 fn _sisfilt(module: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -690,6 +763,7 @@ fn _sisfilt(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(simulate, module)?)?;
     module.add_function(wrap_pyfunction!(estimate, module)?)?;
     module.add_function(wrap_pyfunction!(fit, module)?)?;
+    module.add_function(wrap_pyfunction!(evaluate, module)?)?;
     module.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -225,3 +225,27 @@ def test_the_step_by_step_filter_equals_estimate(platoon_run, options):
         np.testing.assert_array_equal(again.step(y[t])[0], est.x[t])
     with pytest.raises(ValueError, match=r"y_t: expected an array of shape \(N, q\)"):
         again.step(y[3][:, :1])
+
+
+def without_times(value):
+    """The evaluation without its wall-clock times, which differ from run to run."""
+    if isinstance(value, dict):
+        return {k: without_times(v) for k, v in value.items() if "wall_time" not in k}
+    if isinstance(value, list):
+        return [without_times(v) for v in value]
+    return value
+
+
+@pytest.mark.parametrize("options, kwargs", [
+    ([], {}),
+    (["--sweep-p", "0.6,0.9", "--filters", "distributed,joint-mixture"],
+     {"sweep_p": [0.6, 0.9], "filters": ["distributed", "joint-mixture"]}),
+    (["--smooth", "--true-p", "0.7", "--seed", "4"], {"smooth": True, "true_p": 0.7, "seed": 4}),
+])
+def test_evaluate_equals_the_command_lines_json(cli, tmp_path, options, kwargs):
+    cli("evaluate", config("platoon.toml"), "--runs", 2, "--set", "steps=25", "--out",
+        tmp_path / "e.json", *options, cwd=tmp_path)
+    doc = json.loads((tmp_path / "e.json").read_text())
+    model = sisfilt.Model.from_toml(config("platoon.toml")).with_(steps=25)
+    got = sisfilt.evaluate(model, 2, **kwargs)
+    assert without_times(got) == without_times(doc)

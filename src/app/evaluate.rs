@@ -12,7 +12,7 @@ use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
 
 use super::choice::choice;
-use super::{SetArgs, config_files, in_flag_words, print_line, run_inputs};
+use super::{SetArgs, config_files, in_flag_words, print_line};
 
 #[derive(Debug, clap::Args)]
 pub struct EvaluateArgs {
@@ -111,7 +111,7 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         model.subsystems,
         rayon::current_num_threads()
     ));
-    let inputs = run_inputs(&model)?;
+    let inputs = sisfilt::inputs::RunInputs::of_model(&model)?;
     if let Some(values) = sweep {
         let result =
             sisfilt::evaluate::sweep_p(&model, &inputs, &config_name, opts, values, || bar.inc(1))

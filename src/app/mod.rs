@@ -27,7 +27,7 @@ use sisfilt::config::ConfigSetting;
 use sisfilt::error::Error;
 use sisfilt::evaluate::EvaluateError;
 use sisfilt::fit::FitError;
-use sisfilt::inputs::{InputStream, RunInputs};
+use sisfilt::inputs::InputStream;
 use sisfilt::io::{Output, Role};
 use sisfilt::model::Model;
 use sisfilt::run::{RunError, Setting, SpecError};
@@ -145,15 +145,6 @@ fn print_stdout(text: &[u8]) -> Result<()> {
 /// Writes `text` and a line break to standard output (see [`print_stdout`]).
 fn print_line(text: &str) -> Result<()> {
     print_stdout(format!("{text}\n").as_bytes())
-}
-
-/// The inputs of every run of `model`, resolved here: the inputs file its config names, read
-/// for its `T` steps, or the inputs its config generates.
-fn run_inputs(model: &Model) -> Result<RunInputs> {
-    Ok(match InputStream::path(model, None) {
-        Some(_) => RunInputs::read(InputStream::open(model, None)?, model, model.horizon()?)?,
-        None => RunInputs::generated(model)?,
-    })
 }
 
 /// The files a run of `model` reads: its config, and the inputs file the config names.
