@@ -378,9 +378,9 @@ def write(results, out_md):
     lines.append("")
     # Sections measured by hand with criterion and kept beside this script, carried over
     # verbatim: the joint filter's (issue 10, `cargo bench --bench joint`) and the mixture
-    # update's (issue 25, the `update` and `joint_update` groups), and `fit`'s (issue 37,
-    # `bench/fit.py`).
-    for section in ["joint.md", "mixture.md", "fit.md"]:
+    # update's (issue 25, the `update` and `joint_update` groups), `fit`'s (issue 37,
+    # `bench/fit.py`) and the Python package's (issue 38, `bench/python.py`).
+    for section in ["joint.md", "mixture.md", "fit.md", "python.md"]:
         path = os.path.join(os.path.dirname(os.path.abspath(__file__)), section)
         if os.path.exists(path):
             with open(path) as f:

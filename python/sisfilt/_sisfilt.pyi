@@ -42,6 +42,7 @@ class Estimates:
     innovations: dict
     notes: list
     kind: str
+    timings: dict
     def to_pandas(self) -> Any: ...
 
 class Filter:

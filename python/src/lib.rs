@@ -321,6 +321,11 @@ struct Estimates {
     /// What the rows hold: `filtered`, `predicted` or `smoothed`.
     #[pyo3(get)]
     kind: String,
+    /// Seconds the library spent taking the steps from the arrays (`read`), filtering
+    /// (`filter`) and collecting the estimates (`write`), and its whole run (`run`: those and
+    /// the run's setup and checks).
+    #[pyo3(get)]
+    timings: Py<PyAny>,
 }
 
 #[pymethods]
@@ -441,9 +446,11 @@ fn estimate(
     let m = model.inner.clone();
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
+    let started = std::time::Instant::now();
     let run = py
         .detach(|| sisfilt::run::estimate(&m, &spec, &y, u.as_deref(), None))
         .map_err(py_err)?;
+    let run_seconds = started.elapsed().as_secs_f64();
     let (big_n, n) = (m.subsystems, m.dims.n);
     Ok(Estimates {
         x: array(py, run.x, &[steps, big_n, n])?.unbind(),
@@ -457,6 +464,15 @@ fn estimate(
         innovations: to_python(py, &run.report.summary.innovations)?.unbind(),
         notes: run.notes.iter().map(ToString::to_string).collect(),
         kind: to_python(py, &spec.output())?.extract()?,
+        timings: {
+            let t = run.report.timings;
+            let d = PyDict::new(py);
+            d.set_item("read", t.read.as_secs_f64())?;
+            d.set_item("filter", t.filter.as_secs_f64())?;
+            d.set_item("write", t.write.as_secs_f64())?;
+            d.set_item("run", run_seconds)?;
+            d.into_any().unbind()
+        },
     })
 }
 
