@@ -43,6 +43,32 @@ fn choice<T: Choice>(what: &str, name: &str) -> PyResult<T> {
     })
 }
 
+/// The run settings given by name, as `estimate` and `Filter` take them (the rest default).
+fn named_spec(
+    filter: &str,
+    update: &str,
+    dropouts: &str,
+    paper: bool,
+    solver: Option<&str>,
+    second_moment: Option<&str>,
+    interconnect_from: Option<&str>,
+) -> PyResult<RunSpec> {
+    Ok(RunSpec {
+        filter: choice("filter", filter)?,
+        update: choice("update", update)?,
+        dropouts: choice("dropouts", dropouts)?,
+        paper,
+        solver: solver.map(|s| choice("solver", s)).transpose()?,
+        second_moment: second_moment
+            .map(|s| choice("second_moment", s))
+            .transpose()?,
+        interconnect_from: interconnect_from
+            .map(|s| choice("interconnect_from", s))
+            .transpose()?,
+        ..RunSpec::default()
+    })
+}
+
 /// A serialisable value as the Python object its JSON reads as.
 fn to_python<'py>(py: Python<'py>, value: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
     let text = serde_json::to_string(value)
@@ -421,17 +447,6 @@ fn estimate(
     max_memory: Option<u64>,
 ) -> PyResult<Estimates> {
     let spec = RunSpec {
-        filter: choice("filter", filter)?,
-        update: choice("update", update)?,
-        dropouts: choice("dropouts", dropouts)?,
-        paper,
-        solver: solver.map(|s| choice("solver", s)).transpose()?,
-        second_moment: second_moment
-            .map(|s| choice("second_moment", s))
-            .transpose()?,
-        interconnect_from: interconnect_from
-            .map(|s| choice("interconnect_from", s))
-            .transpose()?,
         band,
         band_tol,
         loading,
@@ -440,6 +455,15 @@ fn estimate(
         max_lifted,
         max_memory,
         nis_column: true,
+        ..named_spec(
+            filter,
+            update,
+            dropouts,
+            paper,
+            solver,
+            second_moment,
+            interconnect_from,
+        )?
     }
     .check()
     .map_err(|e| py_err(e.into()))?;
@@ -542,22 +566,19 @@ impl Filter {
         max_lifted: usize,
     ) -> PyResult<Self> {
         let spec = RunSpec {
-            filter: choice("filter", filter)?,
-            update: choice("update", update)?,
-            dropouts: choice("dropouts", dropouts)?,
-            paper,
-            solver: solver.map(|s| choice("solver", s)).transpose()?,
-            second_moment: second_moment
-                .map(|s| choice("second_moment", s))
-                .transpose()?,
-            interconnect_from: interconnect_from
-                .map(|s| choice("interconnect_from", s))
-                .transpose()?,
             band,
             band_tol,
             loading,
             max_lifted,
-            ..RunSpec::default()
+            ..named_spec(
+                filter,
+                update,
+                dropouts,
+                paper,
+                solver,
+                second_moment,
+                interconnect_from,
+            )?
         }
         .check()
         .map_err(|e| py_err(e.into()))?;

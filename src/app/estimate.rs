@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 
 use sisfilt::accuracy::AccuracyReport;
-use sisfilt::config::{ConfigSetting, ConfigSource, RawConfig};
+use sisfilt::config::{ConfigSource, RawConfig};
 use sisfilt::error::Error;
 use sisfilt::filter::{Dropouts, FilterKind, InterconnectFrom, SecondMoment, Update};
 use sisfilt::inputs::{InputStream, open_csv};
@@ -17,28 +17,19 @@ use sisfilt::io::estimates::{
 };
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
-use sisfilt::model::Model;
 use sisfilt::run::{
     CheckedSpec, EstimateSink, FileSource, Note, ReaderTruth, RunSpec, StepEstimates, Timings,
     TruthSource,
 };
 
 use super::choice::choice;
+use super::data::{Data, DataArgs};
 use super::{SetArgs, in_flag_words};
 
 #[derive(Debug, clap::Args)]
 pub struct EstimateArgs {
-    /// The TOML config. May be left out when --meas was written by `simulate`: the config
-    /// recorded in run.json beside it is used.
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Measurement CSV (`t,i,y1..yq`), or - for standard input.
-    #[arg(long)]
-    pub meas: PathBuf,
-    /// Inputs CSV (`t,i,u1..um`); default: inputs.csv beside a simulated --meas, else the
-    /// config's input table.
-    #[arg(long)]
-    pub inputs: Option<PathBuf>,
+    #[command(flatten)]
+    pub data: DataArgs,
     /// Output file, or - for standard output.
     #[arg(long, default_value = "-")]
     pub out: PathBuf,
@@ -153,60 +144,6 @@ impl EstimateArgs {
     }
 }
 
-/// The config of a run on a measurement file (`estimate`, `fit`): `config`, else the
-/// `run.json` beside `meas`, with `set` over it. Also returns the folder of that run record,
-/// if one was used.
-pub(super) fn data_config(
-    config: Option<&Path>,
-    meas: &Path,
-    set: &[ConfigSetting],
-) -> Result<(ConfigSource, Option<PathBuf>)> {
-    if let Some(path) = config {
-        return Ok((ConfigSource::from_file(path)?.with_settings(set)?, None));
-    }
-    let missing = || {
-        Error::Usage(format!(
-            "--config is required: {} has no {} beside it (one written by `sisfilt simulate`)",
-            meas.display(),
-            RunRecord::FILE
-        ))
-    };
-    if meas.as_os_str() == "-" {
-        return Err(Error::Usage(
-            "--config is required when the measurements come from standard input".into(),
-        )
-        .into());
-    }
-    let dir = folder_of(meas).to_path_buf();
-    let record = RunRecord::load(&dir)?.ok_or_else(missing)?;
-    let src = record.config_source(&dir.join(RunRecord::FILE))?;
-    Ok((src.with_settings(set)?, Some(dir)))
-}
-
-/// The inputs file of a run on a measurement file: `inputs`, else `inputs.csv` beside a
-/// simulated `meas` (in `run_dir`); `None` with the config's own inputs. `--inputs` for a
-/// model without inputs is refused.
-pub(super) fn data_inputs(
-    model: &Model,
-    inputs: Option<&Path>,
-    run_dir: Option<&Path>,
-) -> Result<Option<PathBuf>> {
-    if model.dims.m == 0
-        && let Some(path) = inputs
-    {
-        return Err(Error::Usage(format!(
-            "--inputs {}: the model has no inputs (m = 0), so the file would never be read; leave --inputs out",
-            path.display()
-        ))
-        .into());
-    }
-    Ok(inputs.map(Path::to_path_buf).or_else(|| {
-        run_dir
-            .map(|dir| dir.join("inputs.csv"))
-            .filter(|p| model.dims.m > 0 && p.is_file())
-    }))
-}
-
 /// The run record beside a data file, when there is one that reads (a record that does not
 /// only costs the comparisons it serves).
 fn record_beside(path: &Path) -> Option<RunRecord> {
@@ -275,34 +212,26 @@ fn warn_if_other_truth(meas: &Path, truth: &Path) {
 pub fn run(args: &EstimateArgs) -> Result<()> {
     let started = std::time::Instant::now();
     let spec = args.spec()?;
-    let (src, run_dir) = data_config(args.config.as_deref(), &args.meas, &args.set.set)?;
-    if let Some(path) = &args.config {
-        warn_if_other_config(path, &args.meas, &src);
+    let data = args.data.load(&args.set.set)?;
+    if let Some(path) = &args.data.config {
+        warn_if_other_config(path, &args.data.meas, &data.src);
     }
-    let model = Model::from_config(&src)?;
+    let Data {
+        src,
+        model,
+        inputs_file,
+        ..
+    } = &data;
     let d = model.dims;
     let (n, big_n) = (d.n, model.subsystems);
-    let inputs_file = data_inputs(&model, args.inputs.as_deref(), run_dir.as_deref())?;
-    let record = run_dir.as_ref().map(|dir| dir.join(RunRecord::FILE));
-    let mut read: Vec<Role> = (args.config.iter().map(|p| Role::new("--config", p)))
-        .chain(record.iter().map(|p| Role::new("the run record", p)))
-        .collect();
-    read.push(Role::new("--meas", &args.meas));
+    let mut read = args.data.roles(&data);
     if let Some(path) = &args.truth {
-        warn_if_other_truth(&args.meas, path);
+        warn_if_other_truth(&args.data.meas, path);
         read.push(Role::new("--truth", path));
     }
-    if let Some(path) = InputStream::path(&model, inputs_file.as_deref()) {
-        let what = if args.inputs.is_some() {
-            "--inputs"
-        } else {
-            "the inputs file"
-        };
-        read.push(Role::new(what, path));
-    }
     check_files(&read, &[Role::new("--out", &args.out)])?;
-    let inputs = InputStream::open(&model, inputs_file.as_deref())?;
-    let meas = open_csv(&args.meas, StepLayout::measurements(d.q), big_n)?;
+    let inputs = InputStream::open(model, inputs_file.as_deref())?;
+    let meas = open_csv(&args.data.meas, StepLayout::measurements(d.q), big_n)?;
     let truth = args
         .truth
         .as_ref()
@@ -312,22 +241,22 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     let output = Output::create(&args.out)?;
     let inputs_name = inputs_file.as_ref().map(|p| p.display().to_string());
     let metadata = EstimatesMetadata::new(
-        &src,
-        &model,
-        spec.recorded(&model),
-        &args.meas.display().to_string(),
+        src,
+        model,
+        spec.recorded(model),
+        &args.data.meas.display().to_string(),
         inputs_name.as_deref(),
     );
     let out_name = args.out.display().to_string();
     // Filtered rows reach a waiting reader step by step; smoothed ones only at the end.
     let live = output.is_live() && spec.output() != EstimateKind::Smoothed;
-    let writer = EstimatesWriter::new(output, args.format(), spec.columns(&model), Some(&metadata))
+    let writer = EstimatesWriter::new(output, args.format(), spec.columns(model), Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?
         .live(live);
-    if spec.output() == EstimateKind::Smoothed && !is_regular_file(&args.meas) {
-        let name = match args.meas.as_os_str() == "-" {
+    if spec.output() == EstimateKind::Smoothed && !is_regular_file(&args.data.meas) {
+        let name = match args.data.meas.as_os_str() == "-" {
             true => "standard input".to_string(),
-            false => args.meas.display().to_string(),
+            false => args.data.meas.display().to_string(),
         };
         warn(format!(
             "--smooth: {name} is a stream; the smoothed estimates need every step of it and come only once it ends (without --smooth, each step's estimates come as it arrives)"
@@ -340,7 +269,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
     let mut source = FileSource::new(meas, inputs);
     let mut truth = truth.map(ReaderTruth);
     let report = sisfilt::run::stream(
-        &model,
+        model,
         &spec,
         &mut source,
         truth.as_mut().map(|t| t as &mut dyn TruthSource),

@@ -11,30 +11,20 @@ use sisfilt::error::Error;
 use sisfilt::filter::{Dropouts, FilterKind};
 use sisfilt::fit::{DEFAULT_MAX_ITER, FitProgress, FitSpec, ParamGroup, ReportFormat};
 use sisfilt::inputs::{InputStream, open_csv};
-use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files};
+use sisfilt::io::{Output, Role, StepLayout, check_files};
 use sisfilt::messages::{Verbosity, finding, verbosity, warn};
 use sisfilt::model::Model;
 use sisfilt::run::FileSource;
 
 use super::choice::choice;
-use super::estimate::{data_config, data_inputs};
+use super::data::{Data, DataArgs};
 use super::{SetArgs, in_flag_words, print_stdout};
 
 #[derive(Debug, clap::Args)]
 pub struct FitArgs {
-    /// The TOML config: the model, and the starting values of what is fitted. May be left out
-    /// when --meas was written by `simulate`: the config recorded in run.json beside it is
-    /// used.
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Measurement CSV (`t,i,y1..yq`; an empty cell is a value not in the data), or - for
-    /// standard input.
-    #[arg(long)]
-    pub meas: PathBuf,
-    /// Inputs CSV (`t,i,u1..um`); default: inputs.csv beside a simulated --meas, else the
-    /// config's input table.
-    #[arg(long)]
-    pub inputs: Option<PathBuf>,
+    /// The data, and the config whose values are where the fit starts.
+    #[command(flatten)]
+    pub data: DataArgs,
     /// What to fit, comma-separated: p (one arrival probability for the whole chain), Q and M
     /// (their diagonals, each entry shared by every subsystem; off-diagonal entries stay as
     /// configured) [default: p,Q,M; Q,M with --dropouts known].
@@ -89,27 +79,22 @@ impl FitArgs {
 /// innovation check, and writes the fitted config.
 pub fn run(args: &FitArgs) -> Result<()> {
     let spec = args.spec()?;
-    let (src, run_dir) = data_config(args.config.as_deref(), &args.meas, &args.set.set)?;
-    let model = Model::from_config(&src)?;
-    let inputs_file = data_inputs(&model, args.inputs.as_deref(), run_dir.as_deref())?;
-    let record = run_dir.as_ref().map(|dir| dir.join(RunRecord::FILE));
-    let mut read: Vec<Role> = (args.config.iter().map(|p| Role::new("--config", p)))
-        .chain(record.iter().map(|p| Role::new("the run record", p)))
-        .collect();
-    read.push(Role::new("--meas", &args.meas));
-    if let Some(path) = InputStream::path(&model, inputs_file.as_deref()) {
-        read.push(Role::new("the inputs file", path));
-    }
+    let data = args.data.load(&args.set.set)?;
     let written: Vec<Role> = args.out.iter().map(|p| Role::new("--out", p)).collect();
-    check_files(&read, &written)?;
-
-    let inputs = InputStream::open(&model, inputs_file.as_deref())?;
+    check_files(&args.data.roles(&data), &written)?;
+    let Data {
+        src,
+        model,
+        inputs_file,
+        ..
+    } = &data;
+    let inputs = InputStream::open(model, inputs_file.as_deref())?;
     let meas = open_csv(
-        &args.meas,
+        &args.data.meas,
         StepLayout::measurements(model.dims.q),
         model.subsystems,
     )?;
-    let (y, u) = sisfilt::run::read_all(&model, &mut FileSource::new(meas, inputs))?;
+    let (y, u) = sisfilt::run::read_all(model, &mut FileSource::new(meas, inputs))?;
     // Open the output before the long run, so that a bad path fails fast.
     let output = args.out.as_deref().map(Output::create).transpose()?;
 
@@ -124,7 +109,7 @@ pub fn run(args: &FitArgs) -> Result<()> {
             );
         }) as sisfilt::fit::ProgressFn
     });
-    let fit = sisfilt::fit::fit(&model, &spec, &y, Some(&u), progress).map_err(in_flag_words)?;
+    let fit = sisfilt::fit::fit(model, &spec, &y, Some(&u), progress).map_err(in_flag_words)?;
     for warning in &fit.report.warnings {
         warn(warning);
     }
@@ -144,7 +129,7 @@ pub fn run(args: &FitArgs) -> Result<()> {
         }
     }
     if let (Some(mut output), Some(path)) = (output, args.out.as_deref()) {
-        let text = fitted_config_text(&src, &fit, &args.meas, path)?;
+        let text = fitted_config_text(src, &fit, &args.data.meas, path)?;
         output
             .write_all(text.as_bytes())
             .map_err(|e| Error::io(path, e))?;

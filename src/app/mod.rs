@@ -10,6 +10,7 @@
 mod check;
 mod choice;
 mod completions;
+mod data;
 mod estimate;
 mod evaluate;
 mod fit;
