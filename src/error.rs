@@ -90,6 +90,10 @@ pub enum Error {
     /// An error in run `run` (1-based) of a Monte Carlo study.
     #[error("run {run}, {error}")]
     InRun { run: usize, error: Box<Error> },
+
+    /// The caller asked the run to stop (a front end's interrupt, e.g. Ctrl-C in Python).
+    #[error("interrupted")]
+    Interrupted,
 }
 
 impl Error {

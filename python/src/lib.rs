@@ -32,6 +32,45 @@ fn py_err(e: sisfilt::Error) -> PyErr {
     }
 }
 
+/// How often a long call looks for Python's pending signals (Ctrl-C).
+const SIGNAL_POLL: std::time::Duration = std::time::Duration::from_millis(50);
+
+/// A signal's exception (KeyboardInterrupt), kept until the work it stopped returns.
+type Caught = std::sync::Arc<std::sync::Mutex<Option<PyErr>>>;
+
+/// A poll that raises Python's pending signals at most every [`SIGNAL_POLL`]: the exception
+/// is kept in `caught` and the work told to stop with [`sisfilt::Error::Interrupted`].
+fn signal_poll(caught: Caught) -> impl FnMut() -> sisfilt::Result<()> + Send + 'static {
+    let mut last = std::time::Instant::now();
+    move || {
+        if last.elapsed() < SIGNAL_POLL {
+            return Ok(());
+        }
+        last = std::time::Instant::now();
+        Python::attach(|py| py.check_signals()).map_err(|e| {
+            if let Ok(mut c) = caught.lock() {
+                *c = Some(e);
+            }
+            sisfilt::Error::Interrupted
+        })
+    }
+}
+
+/// Runs `work` without the GIL (other Python threads run meanwhile), handing it a poll for
+/// Ctrl-C: the exception of a signal is raised, any other error as its kind ([`py_err`]).
+fn without_gil<T: Send>(
+    py: Python<'_>,
+    work: impl FnOnce(&mut (dyn FnMut() -> sisfilt::Result<()> + Send)) -> sisfilt::Result<T> + Send,
+) -> PyResult<T> {
+    let caught = Caught::default();
+    let mut poll = signal_poll(caught.clone());
+    let result = py.detach(|| work(&mut poll));
+    result.map_err(|e| {
+        let signal = caught.lock().ok().and_then(|mut c| c.take());
+        signal.unwrap_or_else(|| py_err(e))
+    })
+}
+
 /// The value of the option `what` called `name`, or a `ValueError` listing the names.
 fn choice<T: Choice>(what: &str, name: &str) -> PyResult<T> {
     T::from_name(name).ok_or_else(|| {
@@ -261,23 +300,22 @@ fn simulate<'py>(
         None => m.horizon().map_err(py_err)?,
     };
     let seed = seed.unwrap_or(m.seed);
-    let (x, y, gamma, u) = py
-        .detach(|| -> sisfilt::Result<_> {
-            let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
-            let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-            let mut y_t = vec![0.0; m.subsystems * m.dims.q];
-            sisfilt::simulate::simulate(&m, steps, seed, &mut inputs, |s| {
-                x.extend_from_slice(s.x);
-                y_t.copy_from_slice(s.y);
-                m.blank_unmeasured(s.t, &mut y_t);
-                y.extend_from_slice(&y_t);
-                gamma.extend_from_slice(s.gamma);
-                u.extend_from_slice(s.u);
-                Ok(())
-            })?;
-            Ok((x, y, gamma, u))
-        })
-        .map_err(py_err)?;
+    let (x, y, gamma, u) = without_gil(py, |interrupt| {
+        let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
+        let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut y_t = vec![0.0; m.subsystems * m.dims.q];
+        sisfilt::simulate::simulate(&m, steps, seed, &mut inputs, |s| {
+            interrupt()?;
+            x.extend_from_slice(s.x);
+            y_t.copy_from_slice(s.y);
+            m.blank_unmeasured(s.t, &mut y_t);
+            y.extend_from_slice(&y_t);
+            gamma.extend_from_slice(s.gamma);
+            u.extend_from_slice(s.u);
+            Ok(())
+        })?;
+        Ok((x, y, gamma, u))
+    })?;
     let (big_n, d) = (m.subsystems, m.dims);
     let out = PyDict::new(py);
     out.set_item("x", array(py, x, &[steps, big_n, d.n])?)?;
@@ -471,9 +509,9 @@ fn estimate(
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
     let started = std::time::Instant::now();
-    let run = py
-        .detach(|| sisfilt::run::estimate(&m, &spec, &y, u.as_deref(), None))
-        .map_err(py_err)?;
+    let run = without_gil(py, |interrupt| {
+        sisfilt::run::estimate_interruptible(&m, &spec, &y, u.as_deref(), None, interrupt)
+    })?;
     let run_seconds = started.elapsed().as_secs_f64();
     let (big_n, n) = (m.subsystems, m.dims.n);
     Ok(Estimates {
@@ -709,9 +747,15 @@ fn fit<'py>(
     let m = model.inner.clone();
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
+    let caught = Caught::default();
+    let mut poll = signal_poll(caught.clone());
+    let progress: sisfilt::fit::ProgressFn = Box::new(move |_| poll());
     let fitted = py
-        .detach(|| sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), None))
-        .map_err(py_err)?;
+        .detach(|| sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), Some(progress)))
+        .map_err(|e| {
+            let signal = caught.lock().ok().and_then(|mut c| c.take());
+            signal.unwrap_or_else(|| py_err(e))
+        })?;
     let raw = fitted.fitted_config(&model.source.raw);
     let source = ConfigSource::from_raw(&model.source.name, model.source.dir.clone(), raw)
         .map_err(py_err)?;

@@ -249,3 +249,21 @@ def test_evaluate_equals_the_command_lines_json(cli, tmp_path, options, kwargs):
     model = sisfilt.Model.from_toml(config("platoon.toml")).with_(steps=25)
     got = sisfilt.evaluate(model, 2, **kwargs)
     assert without_times(got) == without_times(doc)
+
+
+def test_ctrl_c_stops_a_long_call():
+    """SIGINT (Ctrl-C) during a long filter run raises KeyboardInterrupt within the call,
+    and the package works afterwards."""
+    import os
+    import signal
+
+    model = sisfilt.Model.from_toml(config("platoon.toml")).with_(subsystems=2000)
+    y = np.zeros((3000, 2000, 2))
+    timer = threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            sisfilt.estimate(model, y, filter="joint")
+    finally:
+        timer.cancel()
+    assert sisfilt.estimate(model, y[:2]).x.shape == (2, 2000, 2)

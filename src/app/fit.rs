@@ -107,6 +107,7 @@ pub fn run(args: &FitArgs) -> Result<()> {
                 p.loglik,
                 p.evaluations
             );
+            Ok(())
         }) as sisfilt::fit::ProgressFn
     });
     let fit = sisfilt::fit::fit(model, &spec, &y, Some(&u), progress).map_err(in_flag_words)?;

@@ -195,8 +195,9 @@ pub struct FitProgress {
     pub evaluations: usize,
 }
 
-/// A progress callback, called once per iteration of the optimiser.
-pub type ProgressFn = Box<dyn FnMut(&FitProgress) + Send>;
+/// A progress callback, called once per iteration of the optimiser; an error (e.g.
+/// [`Error::Interrupted`], a front end's Ctrl-C) stops the fit with that error.
+pub type ProgressFn = Box<dyn FnMut(&FitProgress) -> Result<()> + Send>;
 
 /// Fits the parameters of `spec` to the measurements `y` (`T × N × q`, NaN where a value is
 /// not in the data) with inputs `u` (`T × N × m`; `None`: the model's own), starting from
@@ -223,19 +224,22 @@ pub fn fit(
         .map_err(|e| Error::Usage(format!("fit: {e}")))?;
     let mut executor = Executor::new(&objective, solver)
         .configure(|state| state.param(theta0.clone()).max_iters(spec.max_iter as u64));
+    let stopped: Arc<std::sync::Mutex<Option<Error>>> = Arc::default();
     if let Some(progress) = progress {
         executor = executor.add_observer(
             Progress {
                 callback: progress,
                 evaluations: counter,
                 observations: objective.observations as f64,
+                stopped: Arc::clone(&stopped),
             },
             ObserverMode::Always,
         );
     }
-    let result = executor
-        .run()
-        .map_err(|e| Error::Usage(format!("fit: the optimiser failed: {e}")))?;
+    let result = executor.run().map_err(|e| {
+        let stopped = stopped.lock().ok().and_then(|mut s| s.take());
+        stopped.unwrap_or_else(|| Error::Usage(format!("fit: the optimiser failed: {e}")))
+    })?;
     let state = result.state();
     let iterations = state.get_iter();
     let termination = state
@@ -611,11 +615,13 @@ impl Gradient for &Objective<'_> {
     }
 }
 
-/// Calls the progress callback after each iteration.
+/// Calls the progress callback after each iteration; its error stops the optimiser and is
+/// kept in `stopped` for the fit to return.
 struct Progress {
     callback: ProgressFn,
     evaluations: Arc<AtomicUsize>,
     observations: f64,
+    stopped: Arc<std::sync::Mutex<Option<Error>>>,
 }
 
 impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Progress {
@@ -624,11 +630,17 @@ impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Progress {
         state: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
         _kv: &KV,
     ) -> std::result::Result<(), argmin::core::Error> {
-        (self.callback)(&FitProgress {
+        let progress = FitProgress {
             iteration: state.get_iter(),
             loglik: -state.get_best_cost() * self.observations,
             evaluations: self.evaluations.load(Ordering::Relaxed),
-        });
-        Ok(())
+        };
+        (self.callback)(&progress).map_err(|e| {
+            let message = e.to_string();
+            if let Ok(mut stopped) = self.stopped.lock() {
+                *stopped = Some(e);
+            }
+            argmin::core::Error::msg(message)
+        })
     }
 }

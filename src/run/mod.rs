@@ -388,18 +388,20 @@ pub struct Estimates {
     pub notes: Vec<Note>,
 }
 
-/// Gathers the steps of a run into [`Estimates`].
-#[derive(Default)]
-struct Collect {
+/// Gathers the steps of a run into [`Estimates`], asking `interrupt` after each whether to
+/// stop.
+struct Collect<'a> {
     x: Vec<f64>,
     p: Vec<f64>,
     arrival: Option<Vec<f64>>,
     nis: Vec<f64>,
     notes: Vec<Note>,
+    interrupt: &'a mut dyn FnMut() -> Result<()>,
 }
 
-impl EstimateSink for Collect {
+impl EstimateSink for Collect<'_> {
     fn step(&mut self, step: &StepEstimates<'_>) -> Result<()> {
+        (self.interrupt)()?;
         self.x.extend_from_slice(step.x);
         self.p.extend_from_slice(step.p);
         self.nis.extend_from_slice(step.nis);
@@ -512,10 +514,30 @@ pub fn estimate(
     u: Option<&[f64]>,
     truth: Option<&[f64]>,
 ) -> Result<Estimates> {
+    estimate_interruptible(model, spec, y, u, truth, &mut || Ok(()))
+}
+
+/// [`estimate`], asking `interrupt` after each step whether to stop: its error (e.g.
+/// [`Error::Interrupted`]) ends the run (a front end's Ctrl-C).
+pub fn estimate_interruptible(
+    model: &Model,
+    spec: &CheckedSpec,
+    y: &[f64],
+    u: Option<&[f64]>,
+    truth: Option<&[f64]>,
+    interrupt: &mut dyn FnMut() -> Result<()>,
+) -> Result<Estimates> {
     check_measurements(model, y)?;
     let mut source = ArraySource::new(model, y, u)?;
     let mut truth = truth.map(|t| SliceTruth::new(model, t)).transpose()?;
-    let mut sink = Collect::default();
+    let mut sink = Collect {
+        x: Vec::new(),
+        p: Vec::new(),
+        arrival: None,
+        nis: Vec::new(),
+        notes: Vec::new(),
+        interrupt,
+    };
     let report = stream(
         model,
         spec,
