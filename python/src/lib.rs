@@ -378,8 +378,9 @@ struct Estimates {
     nis: Py<PyAny>,
     #[pyo3(get)]
     loglik: Option<f64>,
-    #[pyo3(get)]
-    innovations: Py<PyAny>,
+    /// The innovation check (docs/theory.md §14), converted to a dict when first read: with
+    /// a figure per subsystem it is the largest thing to convert, and few calls read it.
+    innovations: Option<sisfilt::innovations::InnovationReport>,
     #[pyo3(get)]
     notes: Vec<String>,
     /// What the rows hold: `filtered`, `predicted` or `smoothed`.
@@ -394,6 +395,13 @@ struct Estimates {
 
 #[pymethods]
 impl Estimates {
+    /// The innovation check as a dict (the JSON's `innovations`): whether the data fit the
+    /// model, with a figure per subsystem.
+    #[getter]
+    fn innovations<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &self.innovations)
+    }
+
     /// The columns of the estimates CSV (`t,i,x1..xn,P1_1,P1_2..Pn_n`, then `arrival` and
     /// `nis`; `t_given` for `t` with predicted estimates) as a pandas DataFrame, one row per
     /// `(t, i)`. Needs pandas.
@@ -523,7 +531,7 @@ fn estimate(
             .transpose()?,
         nis: array(py, run.nis, &[steps, big_n])?.unbind(),
         loglik: run.report.summary.loglik,
-        innovations: to_python(py, &run.report.summary.innovations)?.unbind(),
+        innovations: run.report.summary.innovations,
         notes: run.notes.iter().map(ToString::to_string).collect(),
         kind: to_python(py, &spec.output())?.extract()?,
         timings: {
