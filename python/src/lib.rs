@@ -38,11 +38,14 @@ const SIGNAL_POLL: std::time::Duration = std::time::Duration::from_millis(50);
 /// A signal's exception (KeyboardInterrupt), kept until the work it stopped returns.
 type Caught = std::sync::Arc<std::sync::Mutex<Option<PyErr>>>;
 
+/// A poll for Python's pending signals (Ctrl-C), handed to long work.
+type Poll = Box<dyn FnMut() -> sisfilt::Result<()> + Send>;
+
 /// A poll that raises Python's pending signals at most every [`SIGNAL_POLL`]: the exception
 /// is kept in `caught` and the work told to stop with [`sisfilt::Error::Interrupted`].
-fn signal_poll(caught: Caught) -> impl FnMut() -> sisfilt::Result<()> + Send + 'static {
+fn signal_poll(caught: Caught) -> Poll {
     let mut last = std::time::Instant::now();
-    move || {
+    Box::new(move || {
         if last.elapsed() < SIGNAL_POLL {
             return Ok(());
         }
@@ -53,18 +56,18 @@ fn signal_poll(caught: Caught) -> impl FnMut() -> sisfilt::Result<()> + Send + '
             }
             sisfilt::Error::Interrupted
         })
-    }
+    })
 }
 
 /// Runs `work` without the GIL (other Python threads run meanwhile), handing it a poll for
 /// Ctrl-C: the exception of a signal is raised, any other error as its kind ([`py_err`]).
 fn without_gil<T: Send>(
     py: Python<'_>,
-    work: impl FnOnce(&mut (dyn FnMut() -> sisfilt::Result<()> + Send)) -> sisfilt::Result<T> + Send,
+    work: impl FnOnce(Poll) -> sisfilt::Result<T> + Send,
 ) -> PyResult<T> {
     let caught = Caught::default();
-    let mut poll = signal_poll(caught.clone());
-    let result = py.detach(|| work(&mut poll));
+    let poll = signal_poll(caught.clone());
+    let result = py.detach(|| work(poll));
     result.map_err(|e| {
         let signal = caught.lock().ok().and_then(|mut c| c.take());
         signal.unwrap_or_else(|| py_err(e))
@@ -300,7 +303,7 @@ fn simulate<'py>(
         None => m.horizon().map_err(py_err)?,
     };
     let seed = seed.unwrap_or(m.seed);
-    let (x, y, gamma, u) = without_gil(py, |interrupt| {
+    let (x, y, gamma, u) = without_gil(py, |mut interrupt| {
         let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
         let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut y_t = vec![0.0; m.subsystems * m.dims.q];
@@ -517,8 +520,8 @@ fn estimate(
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
     let started = std::time::Instant::now();
-    let run = without_gil(py, |interrupt| {
-        sisfilt::run::estimate_interruptible(&m, &spec, &y, u.as_deref(), None, interrupt)
+    let run = without_gil(py, |mut interrupt| {
+        sisfilt::run::estimate_interruptible(&m, &spec, &y, u.as_deref(), None, &mut interrupt)
     })?;
     let run_seconds = started.elapsed().as_secs_f64();
     let (big_n, n) = (m.subsystems, m.dims.n);
@@ -755,15 +758,10 @@ fn fit<'py>(
     let m = model.inner.clone();
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
-    let caught = Caught::default();
-    let mut poll = signal_poll(caught.clone());
-    let progress: sisfilt::fit::ProgressFn = Box::new(move |_| poll());
-    let fitted = py
-        .detach(|| sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), Some(progress)))
-        .map_err(|e| {
-            let signal = caught.lock().ok().and_then(|mut c| c.take());
-            signal.unwrap_or_else(|| py_err(e))
-        })?;
+    let fitted = without_gil(py, |mut interrupt| {
+        let progress: sisfilt::fit::ProgressFn = Box::new(move |_| interrupt());
+        sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), Some(progress))
+    })?;
     let raw = fitted.fitted_config(&model.source.raw);
     let source = ConfigSource::from_raw(&model.source.name, model.source.dir.clone(), raw)
         .map_err(py_err)?;

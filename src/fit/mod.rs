@@ -78,9 +78,6 @@ pub enum FitError {
     /// `max_iter = 0`.
     #[error("max_iter: expected at least 1 iteration")]
     NoIterations,
-    /// The model has no such entry to fit (a config whose `Q` has zero rows, say).
-    #[error("{0}")]
-    Model(String),
 }
 
 /// What to fit and how, as asked for; [`FitSpec::check`] makes it a [`CheckedFit`].
@@ -210,11 +207,11 @@ pub fn fit(
     progress: Option<ProgressFn>,
 ) -> Result<Fit> {
     let started = Instant::now();
-    let parameters = Parameter::all(model, &spec.params).map_err(FitError::Model)?;
+    let parameters = Parameter::all(model, &spec.params);
     let mut warnings = parameter::start_warnings(model, &parameters);
     let objective = Objective::new(model, spec, &parameters, y, u)?;
     let theta0 = objective.theta0.clone();
-    let f0 = objective.cost(&theta0);
+    let f0 = objective.start_cost;
 
     let counter = Arc::clone(&objective.evaluations);
     let linesearch = MoreThuenteLineSearch::new();
@@ -246,12 +243,13 @@ pub fn fit(
         .get_termination_reason()
         .map_or_else(|| "stopped".to_string(), |r| r.text().to_string());
     let mut theta = objective.clamp(state.get_best_param().unwrap_or(&theta0));
-    if objective.cost(&theta) > f0 {
+    let mut f = objective.cost(&theta);
+    if f > f0 {
         // The optimiser never returns worse than its start; a point clamped back into the box
         // might be.
-        theta = theta0.clone();
+        (theta, f) = (theta0.clone(), f0);
     }
-    let loglik = -objective.cost(&theta) * objective.observations as f64;
+    let loglik = -f * objective.observations as f64;
     let loglik_start = -f0 * objective.observations as f64;
 
     let curvature = objective.curvature(&theta);
@@ -309,7 +307,7 @@ pub fn fit(
     let fitted = objective
         .model_at(&theta)
         .ok_or_else(|| Error::Usage("fit: the fitted model is not valid".into()))?;
-    let check = run::estimate(&fitted, &spec.run, y, u, None)?;
+    let innovations = run::innovation_report(&fitted, &spec.run, y, u)?;
     Ok(Fit {
         report: FitReport {
             parameters: fitted_params,
@@ -325,7 +323,7 @@ pub fn fit(
             termination,
             seconds: started.elapsed().as_secs_f64(),
             warnings,
-            innovations: check.report.summary.innovations,
+            innovations,
         },
         model: fitted,
         estimates: parameters
@@ -347,8 +345,8 @@ struct Objective<'a> {
     lower: Vec<f64>,
     upper: Vec<f64>,
     observations: usize,
-    /// `f(θ₀) + CLIFF`: the cost where `ℓ = −∞`.
-    cliff: f64,
+    /// `f(θ₀)`, the cost at the start; `f(θ₀) + CLIFF` is the cost where `ℓ = −∞`.
+    start_cost: f64,
     evaluations: Arc<AtomicUsize>,
 }
 
@@ -387,7 +385,7 @@ impl<'a> Objective<'a> {
             lower,
             upper,
             observations,
-            cliff: f64::INFINITY,
+            start_cost: f64::INFINITY,
             evaluations: Arc::new(AtomicUsize::new(0)),
         };
         let start = objective
@@ -395,7 +393,7 @@ impl<'a> Objective<'a> {
             .ok_or_else(|| Error::Usage("fit: the configured Q or M is not a covariance".into()))?;
         let loglik: f64 = run::log_likelihood(&start, &spec.run, y, u)?.iter().sum();
         objective.evaluations.fetch_add(1, Ordering::Relaxed);
-        objective.cliff = -loglik / observations as f64 + CLIFF;
+        objective.start_cost = -loglik / observations as f64;
         Ok(objective)
     }
 
@@ -439,9 +437,11 @@ impl<'a> Objective<'a> {
             .zip(&inside)
             .map(|(t, c)| 0.5 * WALL * (t - c).powi(2))
             .sum();
-        let f = self.step_logliks(&inside).map_or(self.cliff, |l| {
-            -l.iter().sum::<f64>() / self.observations as f64
-        });
+        let f = self
+            .step_logliks(&inside)
+            .map_or(self.start_cost + CLIFF, |l| {
+                -l.iter().sum::<f64>() / self.observations as f64
+            });
         f + wall
     }
 

@@ -46,7 +46,7 @@ pub enum Parameter {
 
 impl Parameter {
     /// The scalars of `groups` on `model`: `p`, then `Q11..Qnn`, then `M11..Mqq`.
-    pub fn all(model: &Model, groups: &[ParamGroup]) -> Result<Vec<Self>, String> {
+    pub fn all(model: &Model, groups: &[ParamGroup]) -> Vec<Self> {
         let mut all = Vec::new();
         for group in groups {
             match group {
@@ -55,7 +55,7 @@ impl Parameter {
                 ParamGroup::M => all.extend((0..model.dims.q).map(Self::M)),
             }
         }
-        Ok(all)
+        all
     }
 
     /// `p`, `Q11`, `M22`, …

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
-use crate::innovations::InnovationCheck;
+use crate::innovations::{InnovationCheck, InnovationReport};
 use crate::interconnect::TRANSFER_ERROR_WARNING;
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
 use crate::lifted::spectral_radius;
@@ -448,6 +448,32 @@ pub fn log_likelihood(
     }
     source.finish(densities.len())?;
     Ok(densities)
+}
+
+/// Takes a run's estimates and notes and keeps nothing ([`innovation_report`]).
+struct Discard;
+
+impl EstimateSink for Discard {
+    fn step(&mut self, _: &StepEstimates<'_>) -> Result<()> {
+        Ok(())
+    }
+
+    fn note(&mut self, _: Note) {}
+}
+
+/// The innovation check (docs/theory.md §14) of a run of `spec` on arrays held in memory, as
+/// [`estimate`] takes them, without keeping its estimates: whether the data fit `model`
+/// (`fit` reports it of the fitted model).
+pub fn innovation_report(
+    model: &Model,
+    spec: &CheckedSpec,
+    y: &[f64],
+    u: Option<&[f64]>,
+) -> Result<Option<InnovationReport>> {
+    check_measurements(model, y)?;
+    let mut source = ArraySource::new(model, y, u)?;
+    let report = stream(model, spec, &mut source, None, &mut Discard)?;
+    Ok(report.summary.innovations)
 }
 
 /// Refuses a measurement that is neither a finite number nor NaN (an element not in the
