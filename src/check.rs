@@ -9,13 +9,9 @@ use serde::Serialize;
 use crate::error::Result;
 use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
 use crate::interconnect::ChainSolver;
-use crate::lifted::{SpectralRadius, a_eff_band, spectral_radius};
+use crate::lifted::{RadiusEffort, SpectralRadius, a_eff_band, spectral_radius};
 use crate::model::{Dims, MATRIX_KEYS, Model};
 use crate::smoother::{SmootherKind, memory_bytes};
-
-/// Power-iteration steps for the spectral radius (a run takes fewer: it only wants a quick
-/// stability warning).
-const POWER_STEPS: usize = 4000;
 
 /// The figures of a model.
 #[derive(Debug, Clone, Serialize)]
@@ -56,7 +52,7 @@ pub struct WindowCheck {
     pub last: Option<usize>,
     /// The interconnection system's condition estimate (1-norm).
     pub condition: f64,
-    /// The spectral radius of `A_eff`: exact, or a power-iteration estimate.
+    /// The spectral radius of `A_eff`: exact, or a Krylov estimate.
     pub spectral_radius: SpectralRadius,
     /// The half-width `b` of `A_eff`'s band at the default tolerance.
     pub a_eff_half_width: usize,
@@ -115,7 +111,7 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
         .collect();
     let joint_band = DEFAULT_BAND.min(model.subsystems - 1);
     let all = model.windows();
-    let mut windows = Vec::new();
+    let mut windows: Vec<WindowCheck> = Vec::new();
     let horizon = model.steps.unwrap_or(usize::MAX);
     for (k, w) in all.iter().enumerate() {
         if w.first > horizon {
@@ -126,25 +122,25 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
             .map(|next| next.first - 1)
             .or(model.steps)
             .map(|last| last.min(horizon));
-        let solver = ChainSolver::new(model, w.first)?;
-        let b = a_eff_band(model, w.first, &solver, DEFAULT_BAND_TOL).half_width();
+        let unmeasured = (1..=model.subsystems)
+            .filter(|&i| !w.measured[i - 1])
+            .collect();
+        // A window that differs from an earlier one only in p or in its sensors has its
+        // chain, so its figures.
+        let same_chain = windows
+            .iter()
+            .zip(all)
+            .find(|(_, earlier)| earlier.ids == w.ids)
+            .map(|(figures, _)| figures.clone());
+        let figures = match same_chain {
+            Some(figures) => figures,
+            None => window_figures(model, w.first, joint_band)?,
+        };
         windows.push(WindowCheck {
             first: w.first,
             last,
-            condition: solver.condition(),
-            spectral_radius: spectral_radius(model, w.first, POWER_STEPS)?,
-            a_eff_half_width: b,
-            band_tol: DEFAULT_BAND_TOL,
-            unmeasured: (1..=model.subsystems)
-                .filter(|&i| !w.measured[i - 1])
-                .collect(),
-            joint_flops: flops_per_subsystem_step(
-                model.dims.n,
-                joint_band,
-                b,
-                model.subsystems,
-                true,
-            ),
+            unmeasured,
+            ..figures
         });
     }
     let memory = |steps| SmootherMemory {
@@ -161,6 +157,23 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
         windows,
         joint_band,
         smoother_memory: model.steps.map(memory),
+    })
+}
+
+/// The figures of the chain in force at `t` (its `first`, `last` and `unmeasured` are the
+/// caller's to set).
+fn window_figures(model: &Model, t: usize, joint_band: usize) -> Result<WindowCheck> {
+    let solver = ChainSolver::new(model, t)?;
+    let b = a_eff_band(model, t, &solver, DEFAULT_BAND_TOL).half_width();
+    Ok(WindowCheck {
+        first: t,
+        last: None,
+        condition: solver.condition(),
+        spectral_radius: spectral_radius(model, t, RadiusEffort::THOROUGH)?,
+        a_eff_half_width: b,
+        band_tol: DEFAULT_BAND_TOL,
+        unmeasured: Vec::new(),
+        joint_flops: flops_per_subsystem_step(model.dims.n, joint_band, b, model.subsystems, true),
     })
 }
 

@@ -2,6 +2,8 @@
 //! `X⁺ = A_eff X + U_eff U + Ω`, with `A_eff = blkdiag(A) + blkdiag(B) L_x`, where
 //! `V = L_x X + L_u U` is the interconnection solve of docs/theory.md §2.
 
+use faer::linalg::matmul::matmul;
+use faer::{Accum, ColMut, ColRef, MatRef, Par};
 use nalgebra::{DMatrix, DVector};
 
 use crate::error::Result;
@@ -9,10 +11,6 @@ use crate::interconnect::ChainSolver;
 use crate::linalg::band::GenBand;
 use crate::linalg::mat_vec_add;
 use crate::model::Model;
-
-/// Largest `N · n` for which [`spectral_radius`] computes all eigenvalues of a dense `A_eff`;
-/// above it, it estimates by power iteration.
-pub const EXACT_RADIUS_MAX: usize = 1200;
 
 /// Scratch for [`apply_a_eff`] and [`propagate_mean`].
 #[derive(Debug, Default, Clone)]
@@ -170,17 +168,42 @@ pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Ge
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct SpectralRadius {
     pub value: f64,
-    /// True when computed from all eigenvalues, false for a power-iteration estimate.
+    /// True when computed from all eigenvalues, false for a Krylov estimate.
     pub exact: bool,
 }
 
-/// Spectral radius of `A_eff(t)`: exact (all eigenvalues of the dense matrix) for
-/// `N n ≤ EXACT_RADIUS_MAX`, else a power-iteration estimate
-/// `ρ ≈ (‖A^K x‖ / ‖A^{K/2} x‖)^{2/K}` from a fixed start vector, `K = power_steps`.
-pub fn spectral_radius(model: &Model, t: usize, power_steps: usize) -> Result<SpectralRadius> {
+/// How much work [`spectral_radius`] does (docs/theory.md §3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RadiusEffort {
+    /// Up to this many lifted states `N · n`, all eigenvalues of the dense `A_eff`.
+    pub exact_max: usize,
+    /// Above it, the largest Ritz value of an Arnoldi process of this many steps.
+    pub krylov: usize,
+}
+
+impl RadiusEffort {
+    /// `check`'s figure: exact up to 1200 lifted states, else 40 Arnoldi steps (more see
+    /// further into the pseudospectrum of a non-normal `A_eff`, docs/theory.md §3).
+    pub const THOROUGH: Self = Self {
+        exact_max: 1200,
+        krylov: 40,
+    };
+    /// A run's stability warning: 20 Arnoldi steps (exact up to 20 lifted states), a few
+    /// per cent of a filter run on W (docs/theory.md §3).
+    pub const QUICK: Self = Self {
+        exact_max: 0,
+        krylov: 20,
+    };
+}
+
+/// Spectral radius of `A_eff(t)`: all eigenvalues of the dense matrix for
+/// `N n ≤ effort.exact_max`; else the largest `|θ|` over the eigenvalues `θ` (Ritz values) of
+/// the Hessenberg matrix `H_k = V_kᵀ A_eff V_k` of `k = effort.krylov` Arnoldi steps from a
+/// fixed start vector (docs/theory.md §3). Exact when the Krylov space reaches every state.
+pub fn spectral_radius(model: &Model, t: usize, effort: RadiusEffort) -> Result<SpectralRadius> {
     let solver = ChainSolver::new(model, t)?;
     let size = model.subsystems * model.dims.n;
-    if size <= EXACT_RADIUS_MAX {
+    if size <= effort.exact_max {
         let a = a_eff_dense(model, t, &solver);
         // nalgebra's Schur iteration can stall on the clustered spectra of long chains;
         // faer's eigenvalue solver uses exceptional shifts and does not.
@@ -190,36 +213,63 @@ pub fn spectral_radius(model: &Model, t: usize, power_steps: usize) -> Result<Sp
             return Ok(SpectralRadius { value, exact: true });
         }
     }
-    let k_steps = power_steps.max(2);
-    let mut x: Vec<f64> = (0..size)
-        .map(|k| 1.0 + 0.5 * ((k as f64) * 0.618_033_988_75).fract())
-        .collect();
-    let mut y = vec![0.0; size];
+    Ok(ritz_radius(model, t, &solver, effort.krylov.clamp(1, size)))
+}
+
+/// The largest Ritz value's modulus after `k ≤ N n` Arnoldi steps on `A_eff(t)`, with
+/// classical Gram–Schmidt applied twice (which keeps `V_k` orthonormal to rounding).
+fn ritz_radius(model: &Model, t: usize, solver: &ChainSolver, k: usize) -> SpectralRadius {
+    let size = model.subsystems * model.dims.n;
+    // Row j of `basis` is v_j; `h` is H_k, column-major with k + 1 rows.
+    let mut basis = vec![0.0; (k + 1) * size];
+    let mut h = vec![0.0; (k + 1) * k];
     let mut ws = LiftedWorkspace::default();
-    let mut log_norm = 0.0; // log ‖A^k x₀‖ − log ‖x₀‖, accumulated
-    let mut log_half = 0.0;
-    for k in 1..=k_steps {
-        apply_a_eff(model, t, &solver, &x, &mut y, &mut ws);
-        let norm = y.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let prev = x.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if norm == 0.0 {
-            return Ok(SpectralRadius {
-                value: 0.0,
-                exact: false,
-            });
-        }
-        log_norm += (norm / prev).ln();
-        for (xi, yi) in x.iter_mut().zip(&y) {
-            *xi = yi / norm;
-        }
-        if k == k_steps / 2 {
-            log_half = log_norm;
-        }
+    let start = &mut basis[..size];
+    for (j, v) in start.iter_mut().enumerate() {
+        *v = 1.0 + 0.5 * ((j as f64) * 0.618_033_988_75).fract();
     }
-    Ok(SpectralRadius {
-        value: ((log_norm - log_half) / (k_steps - k_steps / 2) as f64).exp(),
-        exact: false,
-    })
+    let norm = start.iter().map(|v| v * v).sum::<f64>().sqrt();
+    start.iter_mut().for_each(|v| *v /= norm);
+    let mut steps = k;
+    for j in 0..k {
+        let (done, rest) = basis.split_at_mut((j + 1) * size);
+        let next = &mut rest[..size];
+        apply_a_eff(model, t, solver, &done[j * size..], next, &mut ws);
+        let scale = next.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let done = MatRef::from_column_major_slice(&done[..], size, j + 1);
+        for _pass in 0..2 {
+            let coefficients = done.transpose() * ColRef::from_slice(next);
+            matmul(
+                ColMut::from_slice_mut(next).as_mat_mut(),
+                Accum::Add,
+                done,
+                coefficients.as_mat(),
+                -1.0,
+                Par::Seq,
+            );
+            for (i, c) in coefficients.iter().enumerate() {
+                h[j * (k + 1) + i] += c;
+            }
+        }
+        let norm = next.iter().map(|v| v * v).sum::<f64>().sqrt();
+        h[j * (k + 1) + j + 1] = norm;
+        // An invariant subspace: its eigenvalues are eigenvalues of A_eff.
+        if norm <= 1e-12 * scale.max(f64::MIN_POSITIVE) {
+            steps = j + 1;
+            break;
+        }
+        next.iter_mut().for_each(|v| *v /= norm);
+    }
+    let hk = faer::Mat::from_fn(steps, steps, |r, c| h[c * (k + 1) + r]);
+    let value = match hk.eigenvalues() {
+        Ok(eigenvalues) => eigenvalues.iter().map(|l| l.norm()).fold(0.0, f64::max),
+        // The Hessenberg QR did not converge: the norm of H_k bounds its eigenvalues.
+        Err(_) => hk.norm_l2(),
+    };
+    SpectralRadius {
+        value,
+        exact: steps == size,
+    }
 }
 
 /// The dense lifted matrices of docs/theory.md §3 at one time: `X⁺ = A_eff X + U_eff U + Ω`,

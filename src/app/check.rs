@@ -102,7 +102,7 @@ fn report(path: &Path, settings: &[ConfigSetting], figures: &ModelCheck) -> Stri
             if w.spectral_radius.exact {
                 "exact"
             } else {
-                "power-iteration estimate"
+                "Krylov estimate"
             }
         ));
         report.push(format!(

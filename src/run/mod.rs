@@ -19,7 +19,7 @@ use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
 use crate::innovations::{InnovationCheck, InnovationReport};
 use crate::interconnect::TRANSFER_ERROR_WARNING;
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
-use crate::lifted::spectral_radius;
+use crate::lifted::{RadiusEffort, spectral_radius};
 use crate::linalg::band::SymBand;
 use crate::model::Model;
 use crate::smoother::{Smoother, human_bytes, memory_bytes};
@@ -30,8 +30,6 @@ pub use source::{
 };
 pub use spec::{CheckedSpec, RunSpec, Setting, SpecError, check_update};
 
-/// Power-iteration steps of the quick stability warning (`check` takes more).
-const POWER_STEPS: usize = 400;
 /// Above this many lifted states a run skips its stability check (`check` still does it).
 const STABILITY_CHECK_MAX: usize = 100_000;
 
@@ -61,8 +59,8 @@ pub enum Note {
     OverconfidentDistributed,
     /// …and its smoother can be worse than the filter (docs/theory.md §9).
     OverconfidentDistributedSmoother,
-    /// The spectral radius of `A_eff` is at least 1 (docs/theory.md §3).
-    Unstable { spectral_radius: f64 },
+    /// The spectral radius of `A_eff` is at least 1 from step `first` on (docs/theory.md §3).
+    Unstable { first: usize, spectral_radius: f64 },
     /// The transfer solver's estimated relative error passed the warning level at `t`
     /// (docs/theory.md §2).
     InaccurateTransfer { error: f64, t: usize },
@@ -79,9 +77,18 @@ impl std::fmt::Display for Note {
             Self::OverconfidentDistributedSmoother => f.write_str(
                 "Q = 0: the per-subsystem smoother trusts x(t+1) = A x + B v̂ exactly and can be worse than its own filter (docs/theory.md §9); filter = joint with smooth is the remedy",
             ),
-            Self::Unstable { spectral_radius } => {
-                f.write_str(&crate::check::instability(*spectral_radius))
-            }
+            Self::Unstable {
+                first: 1,
+                spectral_radius,
+            } => f.write_str(&crate::check::instability(*spectral_radius)),
+            Self::Unstable {
+                first,
+                spectral_radius,
+            } => write!(
+                f,
+                "from t = {first}, {}",
+                crate::check::instability(*spectral_radius)
+            ),
             Self::InaccurateTransfer { error, t } => write!(
                 f,
                 "the transfer solver's estimated relative error is {error:.1e} (> {TRANSFER_ERROR_WARNING:e}) from t = {t} on: its interconnection signals are inaccurate; use solver = banded"
@@ -205,11 +212,21 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
     if spec.dropouts() == Dropouts::Unknown
         && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
     {
-        let rho = spectral_radius(model, 1, POWER_STEPS)?;
-        if rho.value >= 1.0 {
-            notes.push(Note::Unstable {
-                spectral_radius: rho.value,
-            });
+        // One estimate per chain: windows that differ only in p or in their sensors share it.
+        let windows = model.windows();
+        let chains = windows
+            .iter()
+            .enumerate()
+            .filter(|&(k, w)| windows[..k].iter().all(|earlier| earlier.ids != w.ids));
+        for (_, w) in chains {
+            let rho = spectral_radius(model, w.first, RadiusEffort::QUICK)?;
+            if rho.value >= 1.0 {
+                notes.push(Note::Unstable {
+                    first: w.first,
+                    spectral_radius: rho.value,
+                });
+                break;
+            }
         }
     }
     Ok(notes)

@@ -197,7 +197,11 @@ fn unstable_chain_warns_about_the_spectral_radius() {
     };
     let rho = spectral_radius(&dense_a_eff(1, 1, &vec![sub; 5]));
     assert!(rho > 1.0);
-    assert!((radii[0].1 - rho).abs() <= 1e-5, "{} vs {rho}", radii[0].1);
+    assert!(
+        (radii[0].1 - rho).abs() <= 1e-3 * rho,
+        "{} vs {rho}",
+        radii[0].1
+    );
 
     // An uncoupled chain with A = 1.05: radius 1.05 exactly.
     let text = scalar_chain(4, 1.05, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0, 0.0, 0.0]);
@@ -587,5 +591,131 @@ fn stability_warnings_tell_rho_one_from_above_one() {
         assert!(out.status.success());
         let stderr = String::from_utf8(out.stderr).unwrap();
         assert!(stderr.contains(says), "{stderr}");
+    }
+}
+
+// ------------------------------------------------------------------ Krylov estimates
+
+/// The bench chain (bench/workload.toml: n = 2, a complex pair of dominant eigenvalues) with
+/// `big_n` subsystems, and the spectral radius of its dense `A_eff` by faer's eigenvalue solver
+/// (nalgebra's Schur iteration stalls on such clustered spectra). `A_eff` is the library's
+/// (`lifted::a_eff_dense`, which `spectral_radius_of_a_scalar_chain` and the shipped configs'
+/// test check against the dense solve of docs/theory.md §1): too long a chain for that solve.
+fn bench_chain(big_n: usize) -> (String, f64) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/workload.toml");
+    let text = std::fs::read_to_string(path)
+        .unwrap()
+        .replace("subsystems = 10000", &format!("subsystems = {big_n}"));
+    let model = crate::common::model_from(&text);
+    let solver = sisfilt::interconnect::ChainSolver::new(&model, 1).unwrap();
+    let a = sisfilt::lifted::a_eff_dense(&model, 1, &solver);
+    let a = faer::Mat::from_fn(a.nrows(), a.ncols(), |r, c| a[(r, c)]);
+    let eigenvalues = a.eigenvalues().expect("converged");
+    (
+        text,
+        eigenvalues.iter().map(|l| l.norm()).fold(0.0, f64::max),
+    )
+}
+
+/// Above `exact_max` lifted states the radius is the largest Ritz value of an Arnoldi process
+/// (docs/theory.md §3): against the dense eigenvalues of `A_eff`, 20 steps (a run's) and 40
+/// (`check`'s) come within 1e−3 relative; a chain of at most `krylov` states is exact.
+#[test]
+fn krylov_estimate_against_the_dense_radius() {
+    use sisfilt::lifted::{RadiusEffort, spectral_radius as estimate};
+    let (text, rho) = bench_chain(300);
+    let model = crate::common::model_from(&text);
+    let quick = estimate(&model, 1, RadiusEffort::QUICK).unwrap();
+    assert!(!quick.exact);
+    assert!(
+        (quick.value - rho).abs() <= 1e-3 * rho,
+        "{} vs {rho}",
+        quick.value
+    );
+    let thorough = RadiusEffort {
+        exact_max: 0,
+        ..RadiusEffort::THOROUGH
+    };
+    let krylov = estimate(&model, 1, thorough).unwrap();
+    assert!(
+        (krylov.value - rho).abs() <= 1e-3 * rho,
+        "{} vs {rho}",
+        krylov.value
+    );
+
+    // Eight states, twenty steps: the Krylov space is the whole space.
+    let text = bench_chain(4).0;
+    let small = estimate(&crate::common::model_from(&text), 1, RadiusEffort::QUICK).unwrap();
+    let raw: toml::Value = toml::from_str(&text).unwrap();
+    let rho = spectral_radius(&dense_a_eff(1, 1, &vec![model_subs(&raw); 4]));
+    assert!(small.exact);
+    assert!(
+        (small.value - rho).abs() <= 1e-12,
+        "{} vs {rho}",
+        small.value
+    );
+}
+
+/// `check` above 1200 lifted states says its figure is an estimate, within 1e−3 of the dense
+/// radius.
+#[test]
+fn check_of_a_long_chain_prints_a_krylov_estimate() {
+    let (text, rho) = bench_chain(650);
+    let (_dir, _path, run) = check_text(&text);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let radii = printed_radii(&run.stdout);
+    assert_eq!(radii.len(), 1, "{}", run.stdout);
+    assert!(radii[0].0.contains("(Krylov estimate)"), "{}", radii[0].0);
+    assert!(
+        (radii[0].1 - rho).abs() <= 1e-3 * rho,
+        "{} vs {rho}",
+        radii[0].1
+    );
+}
+
+/// A run with unknown dropouts warns when a chain it will filter is unstable, naming the
+/// window it starts (docs/theory.md §3); a stable chain gets no such warning.
+#[test]
+fn estimate_warns_about_an_unstable_window() {
+    let dir = tempfile::tempdir().unwrap();
+    let stable = scalar_chain(40, 0.8, [0.1, 0.1], [0.5, 0.5], [0.1, 0.0, 0.0, 0.1]);
+    // From t = 11 every subsystem's A is 1.05: ρ of that window exceeds 1.05.
+    let unstable = format!("{stable}\n[[override]]\nsteps = [11, 20]\nA = [[1.05]]\n");
+    for (name, text, want) in [("stable", &stable, None), ("unstable", &unstable, Some(11))] {
+        let config = write_file(dir.path(), &format!("{name}.toml"), text);
+        let data = dir.path().join(name);
+        let out = sisfilt()
+            .arg("simulate")
+            .arg(&config)
+            .arg("--out")
+            .arg(&data)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let out = sisfilt()
+            .arg("estimate")
+            .arg("--meas")
+            .arg(data.join("measurements.csv"))
+            .arg("--out")
+            .arg(dir.path().join(format!("{name}.csv")))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8(out.stderr).unwrap();
+        assert!(out.status.success(), "{stderr}");
+        let warning = stderr
+            .lines()
+            .find(|l| l.starts_with("warning: ") && l.contains("spectral radius"));
+        match want {
+            None => assert!(warning.is_none(), "{stderr}"),
+            Some(first) => {
+                let line = warning.unwrap_or_else(|| panic!("no warning in {stderr}"));
+                assert!(line.contains(&format!("from t = {first}, ")), "{line}");
+                assert!(line.contains("> 1: the chain is unstable"), "{line}");
+            }
+        }
     }
 }

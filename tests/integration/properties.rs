@@ -19,6 +19,7 @@ use sisfilt::filter::{
 };
 use sisfilt::inputs::InputStream;
 use sisfilt::interconnect::SolverKind;
+use sisfilt::lifted::RadiusEffort;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
 
@@ -276,7 +277,7 @@ fn chain() -> impl Strategy<Value = Chain> {
 /// The model of a chain whose lifted `A_eff` is stable (docs/theory.md §3); `None` otherwise.
 fn stable_model(chain: &Chain) -> Option<Model> {
     let model = chain.model();
-    let rho = sisfilt::lifted::spectral_radius(&model, 1, 400).unwrap();
+    let rho = sisfilt::lifted::spectral_radius(&model, 1, RadiusEffort::THOROUGH).unwrap();
     (rho.value < 0.99).then_some(model)
 }
 
