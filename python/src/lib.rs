@@ -35,43 +35,62 @@ fn py_err(e: sisfilt::Error) -> PyErr {
 /// How often a long call looks for Python's pending signals (Ctrl-C).
 const SIGNAL_POLL: std::time::Duration = std::time::Duration::from_millis(50);
 
-/// A signal's exception (KeyboardInterrupt), kept until the work it stopped returns.
-type Caught = std::sync::Arc<std::sync::Mutex<Option<PyErr>>>;
+/// Raised by the calling thread when Python has a pending signal (Ctrl-C), for long work
+/// running elsewhere to stop at its next check; cheap to check from any thread.
+#[derive(Clone, Default)]
+struct Interrupt(std::sync::Arc<std::sync::atomic::AtomicBool>);
 
-/// A poll for Python's pending signals (Ctrl-C), handed to long work.
-type Poll = Box<dyn FnMut() -> sisfilt::Result<()> + Send>;
-
-/// A poll that raises Python's pending signals at most every [`SIGNAL_POLL`]: the exception
-/// is kept in `caught` and the work told to stop with [`sisfilt::Error::Interrupted`].
-fn signal_poll(caught: Caught) -> Poll {
-    let mut last = std::time::Instant::now();
-    Box::new(move || {
-        if last.elapsed() < SIGNAL_POLL {
-            return Ok(());
+impl Interrupt {
+    /// [`sisfilt::Error::Interrupted`] once a signal has come.
+    fn check(&self) -> sisfilt::Result<()> {
+        match self.0.load(std::sync::atomic::Ordering::Relaxed) {
+            true => Err(sisfilt::Error::Interrupted),
+            false => Ok(()),
         }
-        last = std::time::Instant::now();
-        Python::attach(|py| py.check_signals()).map_err(|e| {
-            if let Ok(mut c) = caught.lock() {
-                *c = Some(e);
-            }
-            sisfilt::Error::Interrupted
-        })
-    })
+    }
 }
 
-/// Runs `work` without the GIL (other Python threads run meanwhile), handing it a poll for
-/// Ctrl-C: the exception of a signal is raised, any other error as its kind ([`py_err`]).
+/// Runs `work` on a thread of its own without the GIL (other Python threads run meanwhile),
+/// handing it an [`Interrupt`]. Python runs signal handlers only on the thread that called
+/// it, so that thread looks for them every [`SIGNAL_POLL`] while the work runs (on however
+/// many threads it uses): a signal's exception (KeyboardInterrupt) is raised, any other
+/// error as its kind ([`py_err`]).
 fn without_gil<T: Send>(
     py: Python<'_>,
-    work: impl FnOnce(Poll) -> sisfilt::Result<T> + Send,
+    work: impl FnOnce(Interrupt) -> sisfilt::Result<T> + Send,
 ) -> PyResult<T> {
-    let caught = Caught::default();
-    let poll = signal_poll(caught.clone());
-    let result = py.detach(|| work(poll));
-    result.map_err(|e| {
-        let signal = caught.lock().ok().and_then(|mut c| c.take());
-        signal.unwrap_or_else(|| py_err(e))
-    })
+    let interrupt = Interrupt::default();
+    let mut signal: Option<PyErr> = None;
+    let joined = py.detach(|| {
+        std::thread::scope(|scope| {
+            let caller = std::thread::current();
+            let flag = interrupt.clone();
+            let worker = scope.spawn(move || {
+                let result = work(flag);
+                caller.unpark();
+                result
+            });
+            while !worker.is_finished() {
+                std::thread::park_timeout(SIGNAL_POLL);
+                if signal.is_none()
+                    && !worker.is_finished()
+                    && let Err(e) = Python::attach(|py| py.check_signals())
+                {
+                    signal = Some(e);
+                    interrupt
+                        .0
+                        .store(true, std::sync::atomic::Ordering::Relaxed);
+                }
+            }
+            worker.join()
+        })
+    });
+    let result = joined.unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+    match signal {
+        // The user asked to stop: so it is, even when the work finished first.
+        Some(signal) => Err(signal),
+        None => result.map_err(py_err),
+    }
 }
 
 /// The value of the option `what` called `name`, or a `ValueError` listing the names.
@@ -303,12 +322,12 @@ fn simulate<'py>(
         None => m.horizon().map_err(py_err)?,
     };
     let seed = seed.unwrap_or(m.seed);
-    let (x, y, gamma, u) = without_gil(py, |mut interrupt| {
+    let (x, y, gamma, u) = without_gil(py, |interrupt| {
         let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
         let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut y_t = vec![0.0; m.subsystems * m.dims.q];
         sisfilt::simulate::simulate(&m, steps, seed, &mut inputs, |s| {
-            interrupt()?;
+            interrupt.check()?;
             x.extend_from_slice(s.x);
             y_t.copy_from_slice(s.y);
             m.blank_unmeasured(s.t, &mut y_t);
@@ -520,8 +539,10 @@ fn estimate(
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
     let started = std::time::Instant::now();
-    let run = without_gil(py, |mut interrupt| {
-        sisfilt::run::estimate_interruptible(&m, &spec, &y, u.as_deref(), None, &mut interrupt)
+    let run = without_gil(py, |interrupt| {
+        sisfilt::run::estimate_interruptible(&m, &spec, &y, u.as_deref(), None, &mut || {
+            interrupt.check()
+        })
     })?;
     let run_seconds = started.elapsed().as_secs_f64();
     let (big_n, n) = (m.subsystems, m.dims.n);
@@ -758,8 +779,8 @@ fn fit<'py>(
     let m = model.inner.clone();
     let (y, steps) = measurements(&m, &y)?;
     let u = inputs(&m, u, steps)?;
-    let fitted = without_gil(py, |mut interrupt| {
-        let progress: sisfilt::fit::ProgressFn = Box::new(move |_| interrupt());
+    let fitted = without_gil(py, |interrupt| {
+        let progress: sisfilt::fit::ProgressFn = Box::new(move |_| interrupt.check());
         sisfilt::fit::fit(&m, &spec, &y, u.as_deref(), Some(progress))
     })?;
     let raw = fitted.fitted_config(&model.source.raw);
@@ -815,29 +836,19 @@ fn evaluate<'py>(
         .chain(model.source.settings.iter().map(|s| format!("--set {s}")))
         .collect::<Vec<_>>()
         .join(" ");
-    let value = py
-        .detach(|| -> sisfilt::Result<serde_json::Value> {
-            let inputs = sisfilt::inputs::RunInputs::of_model(&m)?;
-            Ok(match sweep_p {
-                Some(values) => serde_json::to_value(sisfilt::evaluate::sweep_p(
-                    &m,
-                    &inputs,
-                    &name,
-                    opts,
-                    &values,
-                    || {},
-                )?),
-                None => serde_json::to_value(sisfilt::evaluate::evaluate(
-                    &m,
-                    &inputs,
-                    &name,
-                    opts,
-                    || {},
-                )?),
+    let value = without_gil(py, |interrupt| -> sisfilt::Result<serde_json::Value> {
+        let tick = || interrupt.check();
+        let inputs = sisfilt::inputs::RunInputs::of_model(&m)?;
+        Ok(match sweep_p {
+            Some(values) => serde_json::to_value(sisfilt::evaluate::sweep_p(
+                &m, &inputs, &name, opts, &values, tick,
+            )?),
+            None => {
+                serde_json::to_value(sisfilt::evaluate::evaluate(&m, &inputs, &name, opts, tick)?)
             }
-            .expect("an evaluation serialises"))
-        })
-        .map_err(py_err)?;
+        }
+        .expect("an evaluation serialises"))
+    })?;
     to_python(py, &value)
 }
 

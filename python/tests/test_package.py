@@ -267,3 +267,20 @@ def test_ctrl_c_stops_a_long_call():
     finally:
         timer.cancel()
     assert sisfilt.estimate(model, y[:2]).x.shape == (2, 2000, 2)
+
+
+def test_ctrl_c_stops_an_evaluation():
+    """SIGINT during a Monte Carlo study (minutes of runs) raises KeyboardInterrupt once the
+    runs in progress finish, and evaluate works afterwards."""
+    import os
+    import signal
+
+    model = sisfilt.Model.from_toml(config("platoon.toml"))
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            sisfilt.evaluate(model, 200_000, filters=["distributed"])
+    finally:
+        timer.cancel()
+    assert sisfilt.evaluate(model, 2, filters=["distributed"])["options"]["runs"] == 2

@@ -114,8 +114,11 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
     let inputs = sisfilt::inputs::RunInputs::of_model(&model)?;
     if let Some(values) = sweep {
         let result =
-            sisfilt::evaluate::sweep_p(&model, &inputs, &config_name, opts, values, || bar.inc(1))
-                .map_err(in_flag_words)?;
+            sisfilt::evaluate::sweep_p(&model, &inputs, &config_name, opts, values, || {
+                bar.inc(1);
+                Ok(())
+            })
+            .map_err(in_flag_words)?;
         bar.finish_and_clear();
         info(format!("evaluate: {:.2} s", result.total_wall_time_s));
         for (p, e) in result.sweep_p.iter().zip(&result.evaluations) {
@@ -124,8 +127,11 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         write_json(out, &result)?;
         return print_table(args, &result.table());
     }
-    let result = sisfilt::evaluate::evaluate(&model, &inputs, &config_name, opts, || bar.inc(1))
-        .map_err(in_flag_words)?;
+    let result = sisfilt::evaluate::evaluate(&model, &inputs, &config_name, opts, || {
+        bar.inc(1);
+        Ok(())
+    })
+    .map_err(in_flag_words)?;
     bar.finish_and_clear();
     info(format!(
         "evaluate: {:.2} s ({})",

@@ -423,13 +423,14 @@ fn run_filters(
 }
 
 /// Runs the Monte Carlo comparison with the inputs `inputs` in every run (at least `T` steps of
-/// them); `tick` is called once per finished run.
+/// them); `tick` is called once per finished run, and an error it returns (an interrupt)
+/// stops the study once the runs in progress finish.
 pub fn evaluate(
     model: &Model,
     inputs: &RunInputs,
     config: &str,
     opts: EvaluateOptions,
-    tick: impl Fn() + Sync,
+    tick: impl Fn() -> Result<()> + Sync,
 ) -> Result<Evaluation> {
     let start = Instant::now();
     let steps = model.horizon()?;
@@ -539,7 +540,7 @@ pub fn evaluate(
         .into_par_iter()
         .map(|r| {
             let res = run_filters(model, inputs, truth, &opts, &active, &schedules, r);
-            tick();
+            tick()?;
             res
         })
         .collect::<Result<_>>()?;
@@ -631,14 +632,15 @@ pub struct Sweep {
 
 /// Runs [`evaluate`] once per arrival probability in `values`, each replacing the config's `p`
 /// everywhere ([`Model::with_arrival_probability`]): in the simulation and in the filters, or
-/// with `opts.true_p` in the filters only; `tick` is called once per finished run.
+/// with `opts.true_p` in the filters only; `tick` is called once per finished run (as
+/// [`evaluate`] calls it).
 pub fn sweep_p(
     model: &Model,
     inputs: &RunInputs,
     config: &str,
     opts: EvaluateOptions,
     values: &[f64],
-    tick: impl Fn() + Sync,
+    tick: impl Fn() -> Result<()> + Sync,
 ) -> Result<Sweep> {
     let start = Instant::now();
     if values.is_empty() {

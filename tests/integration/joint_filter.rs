@@ -355,7 +355,7 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
             &RunInputs::generated(&model).unwrap(),
             name,
             opts,
-            || {},
+            || Ok(()),
         )
         .unwrap();
         let get = |f: Compared| {

@@ -371,7 +371,7 @@ fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
         &RunInputs::generated(&model).unwrap(),
         "platoon",
         opts,
-        || {},
+        || Ok(()),
     )
     .unwrap();
     let ratio = |name: &str| {
@@ -421,7 +421,7 @@ fn mixture_against_nahi(name: &str, steps: usize, runs: usize, true_p: Option<f6
         &RunInputs::generated(&model).unwrap(),
         name,
         opts,
-        || {},
+        || Ok(()),
     )
     .unwrap()
 }
@@ -991,7 +991,7 @@ fn the_anees_band_of_evaluate_holds_its_coverage() {
             smooth: false,
             true_p: None,
         };
-        let result = evaluate(&model, &inputs, "chain", opts, || {}).unwrap();
+        let result = evaluate(&model, &inputs, "chain", opts, || Ok(())).unwrap();
         let acc = result.filters[0].accuracy.as_ref().unwrap();
         assert_eq!(acc.anees_band_basis, sisfilt::innovations::BandBasis::Runs);
         let [low, high] = acc.anees_band;
