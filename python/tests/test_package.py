@@ -4,6 +4,7 @@ Python exceptions."""
 
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -267,6 +268,29 @@ def test_ctrl_c_stops_a_long_call():
     finally:
         timer.cancel()
     assert sisfilt.estimate(model, y[:2]).x.shape == (2, 2000, 2)
+
+
+def test_ctrl_c_stops_a_smoother_in_its_forward_pass():
+    """SIGINT 0.2 s into a smoothed run raises KeyboardInterrupt during the forward pass, not
+    after the backward pass: well before the time a whole run takes (about a tenth of it
+    here; the bound is half, so that a busy machine cannot fail the test)."""
+    import os
+    import signal
+
+    model = sisfilt.Model.from_toml(config("platoon.toml")).with_(subsystems=2000)
+    y = np.zeros((600, 2000, 2))
+    start = time.perf_counter()
+    sisfilt.estimate(model, y[:300], filter="joint", smooth=True)
+    whole = 2 * (time.perf_counter() - start)
+    timer = threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT))
+    start = time.perf_counter()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            sisfilt.estimate(model, y, filter="joint", smooth=True)
+    finally:
+        timer.cancel()
+    assert time.perf_counter() - start < whole / 2
 
 
 def test_ctrl_c_stops_an_evaluation():

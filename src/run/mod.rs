@@ -405,21 +405,35 @@ pub struct Estimates {
     pub notes: Vec<Note>,
 }
 
-/// Gathers the steps of a run into [`Estimates`], asking `interrupt` after each whether to
-/// stop.
-struct Collect<'a> {
+/// A source that asks `interrupt` before each step whether to stop.
+struct Interruptible<'a, S> {
+    source: S,
+    interrupt: &'a mut dyn FnMut() -> Result<()>,
+}
+
+impl<S: StepSource> StepSource for Interruptible<'_, S> {
+    fn next_step(&mut self, y: &mut [f64], u: &mut [f64]) -> Result<Option<usize>> {
+        (self.interrupt)()?;
+        self.source.next_step(y, u)
+    }
+
+    fn finish(&mut self, steps: usize) -> Result<()> {
+        self.source.finish(steps)
+    }
+}
+
+/// Gathers the steps of a run into [`Estimates`].
+struct Collect {
     x: Vec<f64>,
     p: Vec<f64>,
     arrival: Option<Vec<f64>>,
     arrival_capacity: usize,
     nis: Vec<f64>,
     notes: Vec<Note>,
-    interrupt: &'a mut dyn FnMut() -> Result<()>,
 }
 
-impl EstimateSink for Collect<'_> {
+impl EstimateSink for Collect {
     fn step(&mut self, step: &StepEstimates<'_>) -> Result<()> {
-        (self.interrupt)()?;
         self.x.extend_from_slice(step.x);
         self.p.extend_from_slice(step.p);
         self.nis.extend_from_slice(step.nis);
@@ -561,8 +575,9 @@ pub fn estimate(
     estimate_interruptible(model, spec, y, u, truth, &mut || Ok(()))
 }
 
-/// [`estimate`], asking `interrupt` after each step whether to stop: its error (e.g.
-/// [`Error::Interrupted`]) ends the run (a front end's Ctrl-C).
+/// [`estimate`], asking `interrupt` before each step is read whether to stop: its error
+/// (e.g. [`Error::Interrupted`]) ends the run (a front end's Ctrl-C), also in a smoother's
+/// forward pass (its backward pass is one call).
 pub fn estimate_interruptible(
     model: &Model,
     spec: &CheckedSpec,
@@ -572,7 +587,10 @@ pub fn estimate_interruptible(
     interrupt: &mut dyn FnMut() -> Result<()>,
 ) -> Result<Estimates> {
     check_measurements(model, y)?;
-    let mut source = ArraySource::new(model, y, u)?;
+    let mut source = Interruptible {
+        source: ArraySource::new(model, y, u)?,
+        interrupt,
+    };
     let mut truth = truth.map(|t| SliceTruth::new(model, t)).transpose()?;
     // Room for every step at once: growing by doubling would copy and fault in twice the
     // memory (a third of a 10⁴-subsystem run's time beyond the filter).
@@ -585,7 +603,6 @@ pub fn estimate_interruptible(
         arrival_capacity: steps * big_n,
         nis: Vec::with_capacity(steps * big_n),
         notes: Vec::new(),
-        interrupt,
     };
     let report = stream(
         model,
