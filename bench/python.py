@@ -89,7 +89,7 @@ def main():
         loop = (time.perf_counter() - start) * y.shape[1] / args.sample
         lines.append(
             f"| a FilterPy loop over the subsystems (measured on {args.sample}, scaled to "
-            f"10⁴) | {loop:.1f} s | {loop / wall:.0f}× the package's call |")
+            f"10⁴) | {loop:.1f} s | {loop / wall:.0f}× the package's call | |")
     lines.append("")
     lines.append(
         f"The package adds {wall - run:.3f} s to the library's run ({(wall - run) / run:.1%}): "
