@@ -220,7 +220,8 @@ pub fn spectral_radius(model: &Model, t: usize, effort: RadiusEffort) -> Result<
 /// classical Gram–Schmidt applied twice (which keeps `V_k` orthonormal to rounding).
 fn ritz_radius(model: &Model, t: usize, solver: &ChainSolver, k: usize) -> SpectralRadius {
     let size = model.subsystems * model.dims.n;
-    // Row j of `basis` is v_j; `h` is H_k, column-major with k + 1 rows.
+    // `basis` holds v_1 … v_{k+1} one after another (the columns of V); `h` is H_k,
+    // column-major with k + 1 rows.
     let mut basis = vec![0.0; (k + 1) * size];
     let mut h = vec![0.0; (k + 1) * k];
     let mut ws = LiftedWorkspace::default();

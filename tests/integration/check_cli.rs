@@ -5,8 +5,8 @@
 use std::path::Path;
 
 use crate::common::{
-    Sub, dense_a_eff, dense_interconnect, mat, one_error_line, printed_radii, sisfilt,
-    spectral_radius, toml_matrix, write_file,
+    Sub, dense_a_eff, dense_interconnect, mat, one_error_line, printed_radii, simulate_files,
+    sisfilt, spectral_radius, toml_matrix, write_file,
 };
 use nalgebra::{DMatrix, DVector};
 
@@ -299,18 +299,7 @@ fn ill_posed_only_after_the_horizon_is_fine() {
     let (dir, path, run) = check_text(&text);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     assert!(run.stderr.is_empty(), "{}", run.stderr);
-    let out = sisfilt()
-        .arg("simulate")
-        .arg(&path)
-        .arg("--out")
-        .arg(dir.path().join("out"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    simulate_files(&path, &dir.path().join("out"));
 }
 
 #[test]
@@ -684,18 +673,7 @@ fn estimate_warns_about_an_unstable_window() {
     for (name, text, want) in [("stable", &stable, None), ("unstable", &unstable, Some(11))] {
         let config = write_file(dir.path(), &format!("{name}.toml"), text);
         let data = dir.path().join(name);
-        let out = sisfilt()
-            .arg("simulate")
-            .arg(&config)
-            .arg("--out")
-            .arg(&data)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        simulate_files(&config, &data);
         let out = sisfilt()
             .arg("estimate")
             .arg("--meas")

@@ -256,6 +256,23 @@ pub fn printed_radii(stdout: &str) -> Vec<(String, f64)> {
         .collect()
 }
 
+/// Runs `sisfilt simulate CONFIG --out DIR`, which must succeed.
+pub fn simulate_files(config: &Path, out: &Path) {
+    let run = sisfilt()
+        .arg("simulate")
+        .arg(config)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "simulate {}: {}",
+        config.display(),
+        String::from_utf8_lossy(&run.stderr)
+    );
+}
+
 /// A validated model from config text (named `test.toml` in messages).
 pub fn model_from(text: &str) -> sisfilt::model::Model {
     let src = sisfilt::config::ConfigSource::from_text("test.toml", ".".into(), text.to_string())
