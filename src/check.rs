@@ -125,16 +125,9 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
         let unmeasured = (1..=model.subsystems)
             .filter(|&i| !w.measured[i - 1])
             .collect();
-        // A window that differs from an earlier one only in p or in its sensors has its
-        // chain, so its figures.
-        let same_chain = windows
-            .iter()
-            .zip(all)
-            .find(|(_, earlier)| earlier.ids == w.ids)
-            .map(|(figures, _)| figures.clone());
-        let figures = match same_chain {
-            Some(figures) => figures,
-            None => window_figures(model, w.first, joint_band)?,
+        let figures = match model.first_window_of_chain(k) {
+            earlier if earlier < k => windows[earlier].clone(),
+            _ => window_figures(model, w.first, joint_band)?,
         };
         windows.push(WindowCheck {
             first: w.first,
@@ -169,7 +162,7 @@ fn window_figures(model: &Model, t: usize, joint_band: usize) -> Result<WindowCh
         first: t,
         last: None,
         condition: solver.condition(),
-        spectral_radius: spectral_radius(model, t, RadiusEffort::THOROUGH)?,
+        spectral_radius: spectral_radius(model, t, &solver, RadiusEffort::THOROUGH),
         a_eff_half_width: b,
         band_tol: DEFAULT_BAND_TOL,
         unmeasured: Vec::new(),

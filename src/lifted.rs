@@ -200,20 +200,25 @@ impl RadiusEffort {
 /// `N n ≤ effort.exact_max`; else the largest `|θ|` over the eigenvalues `θ` (Ritz values) of
 /// the Hessenberg matrix `H_k = V_kᵀ A_eff V_k` of `k = effort.krylov` Arnoldi steps from a
 /// fixed start vector (docs/theory.md §3). Exact when the Krylov space reaches every state.
-pub fn spectral_radius(model: &Model, t: usize, effort: RadiusEffort) -> Result<SpectralRadius> {
-    let solver = ChainSolver::new(model, t)?;
+/// `solver` must be prepared for `t`.
+pub fn spectral_radius(
+    model: &Model,
+    t: usize,
+    solver: &ChainSolver,
+    effort: RadiusEffort,
+) -> SpectralRadius {
     let size = model.subsystems * model.dims.n;
     if size <= effort.exact_max {
-        let a = a_eff_dense(model, t, &solver);
+        let a = a_eff_dense(model, t, solver);
         // nalgebra's Schur iteration can stall on the clustered spectra of long chains;
         // faer's eigenvalue solver uses exceptional shifts and does not.
         let a = faer::Mat::from_fn(size, size, |r, c| a[(r, c)]);
         if let Ok(eigenvalues) = a.eigenvalues() {
             let value = eigenvalues.iter().map(|l| l.norm()).fold(0.0, f64::max);
-            return Ok(SpectralRadius { value, exact: true });
+            return SpectralRadius { value, exact: true };
         }
     }
-    Ok(ritz_radius(model, t, &solver, effort.krylov.clamp(1, size)))
+    ritz_radius(model, t, solver, effort.krylov.clamp(1, size))
 }
 
 /// The largest Ritz value's modulus after `k ≤ N n` Arnoldi steps on `A_eff(t)`, with

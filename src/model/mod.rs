@@ -621,6 +621,17 @@ impl Model {
         &self.windows
     }
 
+    /// The index of the first window whose chain (every subsystem's parameter set) is that
+    /// of window `k`: windows that differ only in `p` or in their sensors share the chain's
+    /// interconnection and `A_eff`, so their figures.
+    pub fn first_window_of_chain(&self, k: usize) -> usize {
+        let ids = &self.windows[k].ids;
+        self.windows[..k]
+            .iter()
+            .position(|earlier| &earlier.ids == ids)
+            .unwrap_or(k)
+    }
+
     /// The parameters of subsystem `i` (1-based) at time `t`.
     pub fn params(&self, t: usize, i: usize) -> &Params {
         &self.params[self.windows[self.window_index(t)].ids[i - 1] as usize]

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use crate::error::{Error, Result};
 use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
 use crate::innovations::{InnovationCheck, InnovationReport};
-use crate::interconnect::TRANSFER_ERROR_WARNING;
+use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
 use crate::lifted::{RadiusEffort, spectral_radius};
 use crate::linalg::band::SymBand;
@@ -212,14 +212,11 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
     if spec.dropouts() == Dropouts::Unknown
         && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
     {
-        // One estimate per chain: windows that differ only in p or in their sensors share it.
-        let windows = model.windows();
-        let chains = windows
-            .iter()
-            .enumerate()
-            .filter(|&(k, w)| windows[..k].iter().all(|earlier| earlier.ids != w.ids));
-        for (_, w) in chains {
-            let rho = spectral_radius(model, w.first, RadiusEffort::QUICK)?;
+        // One estimate per chain, which windows differing only in p or sensors share.
+        let chains = (0..model.windows().len()).filter(|&k| model.first_window_of_chain(k) == k);
+        for w in chains.map(|k| &model.windows()[k]) {
+            let solver = ChainSolver::new(model, w.first)?;
+            let rho = spectral_radius(model, w.first, &solver, RadiusEffort::QUICK);
             if rho.value >= 1.0 {
                 notes.push(Note::Unstable {
                     first: w.first,
@@ -427,7 +424,6 @@ struct Collect {
     x: Vec<f64>,
     p: Vec<f64>,
     arrival: Option<Vec<f64>>,
-    arrival_capacity: usize,
     nis: Vec<f64>,
     notes: Vec<Note>,
 }
@@ -439,7 +435,8 @@ impl EstimateSink for Collect {
         self.nis.extend_from_slice(step.nis);
         if let Some(pi) = step.arrival {
             self.arrival
-                .get_or_insert_with(|| Vec::with_capacity(self.arrival_capacity))
+                // One value per subsystem and step, as the NIS.
+                .get_or_insert_with(|| Vec::with_capacity(self.nis.capacity()))
                 .extend_from_slice(pi);
         }
         Ok(())
@@ -600,7 +597,6 @@ pub fn estimate_interruptible(
         x: Vec::with_capacity(steps * big_n * n),
         p: Vec::with_capacity(steps * big_n * n * n),
         arrival: None,
-        arrival_capacity: steps * big_n,
         nis: Vec::with_capacity(steps * big_n),
         notes: Vec::new(),
     };

@@ -611,10 +611,14 @@ fn bench_chain(big_n: usize) -> (String, f64) {
 /// (`check`'s) come within 1e−3 relative; a chain of at most `krylov` states is exact.
 #[test]
 fn krylov_estimate_against_the_dense_radius() {
-    use sisfilt::lifted::{RadiusEffort, spectral_radius as estimate};
+    use sisfilt::lifted::RadiusEffort;
+    let estimate = |model: &sisfilt::model::Model, effort| {
+        let solver = sisfilt::interconnect::ChainSolver::new(model, 1).unwrap();
+        sisfilt::lifted::spectral_radius(model, 1, &solver, effort)
+    };
     let (text, rho) = bench_chain(300);
     let model = crate::common::model_from(&text);
-    let quick = estimate(&model, 1, RadiusEffort::QUICK).unwrap();
+    let quick = estimate(&model, RadiusEffort::QUICK);
     assert!(!quick.exact);
     assert!(
         (quick.value - rho).abs() <= 1e-3 * rho,
@@ -625,7 +629,7 @@ fn krylov_estimate_against_the_dense_radius() {
         exact_max: 0,
         ..RadiusEffort::THOROUGH
     };
-    let krylov = estimate(&model, 1, thorough).unwrap();
+    let krylov = estimate(&model, thorough);
     assert!(
         (krylov.value - rho).abs() <= 1e-3 * rho,
         "{} vs {rho}",
@@ -634,7 +638,7 @@ fn krylov_estimate_against_the_dense_radius() {
 
     // Eight states, twenty steps: the Krylov space is the whole space.
     let text = bench_chain(4).0;
-    let small = estimate(&crate::common::model_from(&text), 1, RadiusEffort::QUICK).unwrap();
+    let small = estimate(&crate::common::model_from(&text), RadiusEffort::QUICK);
     let raw: toml::Value = toml::from_str(&text).unwrap();
     let rho = spectral_radius(&dense_a_eff(1, 1, &vec![model_subs(&raw); 4]));
     assert!(small.exact);

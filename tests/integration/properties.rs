@@ -277,7 +277,8 @@ fn chain() -> impl Strategy<Value = Chain> {
 /// The model of a chain whose lifted `A_eff` is stable (docs/theory.md §3); `None` otherwise.
 fn stable_model(chain: &Chain) -> Option<Model> {
     let model = chain.model();
-    let rho = sisfilt::lifted::spectral_radius(&model, 1, RadiusEffort::THOROUGH).unwrap();
+    let solver = sisfilt::interconnect::ChainSolver::new(&model, 1).unwrap();
+    let rho = sisfilt::lifted::spectral_radius(&model, 1, &solver, RadiusEffort::THOROUGH);
     (rho.value < 0.99).then_some(model)
 }
 
