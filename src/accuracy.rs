@@ -6,23 +6,30 @@ use crate::innovations::{BandBasis, t_quantile};
 use nalgebra::{DMatrix, SMatrix, SVector, SymmetricEigen};
 use serde::{Deserialize, Deserializer, Serialize};
 
-/// Running sums over the scored `(t, i)` terms.
-#[derive(Debug, Clone)]
+/// Running sums over the scored `(t, i)` terms; in JSON, the sums a part of a Monte Carlo
+/// study carries (exact, [`crate::io::json_number`]).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Accuracy {
     n: usize,
+    #[serde(with = "crate::io::json_number::many")]
     sum_sq: Vec<f64>,
     terms: u64,
+    #[serde(with = "crate::io::json_number::one")]
     nees_sum: f64,
     nees_terms: u64,
     left_out: u64,
     infinite: u64,
-    /// Over the runs merged with [`Accuracy::merge_run`] whose ANEES is finite: their
-    /// count, and the sum and the sum of squares of their ANEES.
+    /// Over the closed runs ([`Accuracy::close_run`]) whose ANEES is finite: their count,
+    /// and the sum and the sum of squares of their ANEES.
     runs: u64,
+    #[serde(with = "crate::io::json_number::one")]
     run_sum: f64,
+    #[serde(with = "crate::io::json_number::one")]
     run_squares: f64,
     /// Scratch: the error `x − x̂` and, per eigenpair of `P`, `(u_kᵀ e, λ_k)`.
+    #[serde(skip)]
     e: Vec<f64>,
+    #[serde(skip)]
     proj: Vec<(f64, f64)>,
 }
 
@@ -102,6 +109,8 @@ impl Accuracy {
     /// `ρ = 10³ ε max(1, ‖x‖∞)`, and infinite when a resolved `c_k` meets `λ_k ≤ 0`.
     pub fn add(&mut self, x: &[f64], x_hat: &[f64], p: &[f64]) {
         let n = self.n;
+        // Sums read from JSON come without their scratch.
+        self.proj.resize(n, (0.0, 0.0));
         self.e.clear();
         self.e.extend(x.iter().zip(x_hat).map(|(a, b)| a - b));
         for k in 0..n {
@@ -150,6 +159,11 @@ impl Accuracy {
         }
     }
 
+    /// Whether these are sums over states of `n` elements (sums read from a file may not be).
+    pub fn is_of(&self, n: usize) -> bool {
+        self.n == n && self.sum_sq.len() == n
+    }
+
     /// The NEES sums so far: the sum over resolved terms, their count, and the count of
     /// infinite terms (for per-step averages taken as differences).
     pub fn nees_totals(&self) -> (f64, u64, u64) {
@@ -171,15 +185,15 @@ impl Accuracy {
         self.run_squares += other.run_squares;
     }
 
-    /// [`Accuracy::merge`] of the sums of one independent run, whose own ANEES then counts
-    /// for the band of [`AccuracyReport::anees_band`].
-    pub fn merge_run(&mut self, run: &Accuracy) {
-        self.merge(run);
-        if run.infinite == 0 && run.nees_terms > 0 {
-            let anees = run.nees_sum / run.nees_terms as f64;
-            self.runs += 1;
-            self.run_sum += anees;
-            self.run_squares += anees * anees;
+    /// Ends the sums of one independent run, whose own ANEES then counts for the band of
+    /// [`AccuracyReport::anees_band`] in the sums it is merged into.
+    pub fn close_run(&mut self) {
+        debug_assert_eq!(self.runs, 0, "the sums of one run");
+        if self.infinite == 0 && self.nees_terms > 0 {
+            let anees = self.nees_sum / self.nees_terms as f64;
+            self.runs = 1;
+            self.run_sum = anees;
+            self.run_squares = anees * anees;
         }
     }
 
@@ -269,8 +283,9 @@ impl AccuracyReport {
 
 /// Running sums of how well the mixture update's `π(t, i)` (docs/theory.md §10) tells lost
 /// measurements from received ones, against the true indicator `γ(t, i)`.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Detection {
+    #[serde(with = "crate::io::json_number::one")]
     abs_error_sum: f64,
     lost: u64,
     detected: u64,

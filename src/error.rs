@@ -50,6 +50,10 @@ pub enum Error {
     #[error(transparent)]
     Evaluate(#[from] crate::evaluate::EvaluateError),
 
+    /// Parts that do not add up to one study ([`crate::evaluate::MergeError`]).
+    #[error(transparent)]
+    Merge(#[from] crate::evaluate::MergeError),
+
     /// A run cannot go on for a reason its settings name ([`crate::run::RunError`]).
     #[error(transparent)]
     Run(#[from] crate::run::RunError),

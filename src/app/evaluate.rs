@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use sisfilt::error::Error;
-use sisfilt::evaluate::Compared;
+use sisfilt::evaluate::{Compared, Part, Shard, Study};
 use sisfilt::io::{Output, Role, check_files};
 use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
@@ -68,8 +68,36 @@ pub struct EvaluateArgs {
     /// config's p (or each value of --sweep-p): what a wrong p costs each filter.
     #[arg(long, value_name = "P")]
     pub true_p: Option<f64>,
+    /// Run only shard K of M of the study (K = 0..M−1, e.g. $SLURM_ARRAY_TASK_ID/64): its
+    /// block of runs with the seeds the whole study gives them, written with --out as a part
+    /// that `sisfilt evaluate-merge` adds up with the others.
+    #[arg(long, value_name = "K/M", value_parser = parse_shard, requires = "out")]
+    pub shard: Option<Shard>,
     #[command(flatten)]
     pub set: SetArgs,
+}
+
+/// `sisfilt evaluate-merge`: the parts of a sharded study added up.
+#[derive(Debug, clap::Args)]
+pub struct MergeArgs {
+    /// The parts written by `evaluate --shard K/M --out`, every shard once, in any order.
+    #[arg(required = true, value_name = "PART")]
+    pub parts: Vec<PathBuf>,
+    /// Write the whole study's JSON (as `evaluate --out` writes it) to this file; `-` is
+    /// standard output, and the table then goes to standard error.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// `K/M` with `K < M`.
+fn parse_shard(text: &str) -> std::result::Result<Shard, String> {
+    let expected = || format!("expected K/M with 0 ≤ K < M (e.g. 3/64), found `{text}`");
+    let (k, m) = text.split_once('/').ok_or_else(expected)?;
+    let (k, m) = (k.trim().parse(), m.trim().parse());
+    let (Ok(k), Ok(m)) = (k, m) else {
+        return Err(expected());
+    };
+    Shard::new(k, m).map_err(|_| expected())
 }
 
 /// `sisfilt evaluate`: the table on standard output, the JSON in `--out`.
@@ -99,7 +127,8 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         .collect::<Vec<_>>()
         .join(" ");
     let sweep = args.sweep_p.as_deref();
-    let total_runs = args.runs * sweep.map_or(1, <[f64]>::len);
+    let shard_runs = args.shard.map_or(args.runs, |s| s.runs(args.runs).len());
+    let total_runs = shard_runs * sweep.map_or(1, <[f64]>::len);
     let bar = if std::io::stderr().is_terminal() && verbosity() >= Verbosity::Normal {
         indicatif::ProgressBar::new(total_runs as u64)
     } else {
@@ -112,6 +141,30 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         rayon::current_num_threads()
     ));
     let inputs = sisfilt::inputs::RunInputs::of_model(&model)?;
+    if let Some(shard) = args.shard {
+        let part = sisfilt::evaluate::evaluate_part(
+            &model,
+            &inputs,
+            &config_name,
+            opts,
+            sweep,
+            shard,
+            || {
+                bar.inc(1);
+                Ok(())
+            },
+        )
+        .map_err(in_flag_words)?;
+        bar.finish_and_clear();
+        info(format!(
+            "evaluate: shard {shard}, runs {}..{} of {} in {:.2} s",
+            part.runs[0] + 1,
+            part.runs[1],
+            args.runs,
+            part.wall_time_s
+        ));
+        return write_json(out, &part);
+    }
     if let Some(values) = sweep {
         let result =
             sisfilt::evaluate::sweep_p(&model, &inputs, &config_name, opts, values, || {
@@ -125,7 +178,7 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
             warn_left_out(e, &format!(" at p = {p}"));
         }
         write_json(out, &result)?;
-        return print_table(args, &result.table());
+        return print_table(args.out.as_deref(), &result.table());
     }
     let result = sisfilt::evaluate::evaluate(&model, &inputs, &config_name, opts, || {
         bar.inc(1);
@@ -146,14 +199,57 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
     warn_left_out(&result, "");
     // The file first: a reader of the table that stops early must not cost the JSON.
     write_json(out, &result)?;
-    print_table(args, &result.table())
+    print_table(args.out.as_deref(), &result.table())
+}
+
+/// `sisfilt evaluate-merge`: the table of the whole study on standard output, its JSON in
+/// `--out`.
+pub fn merge(args: &MergeArgs) -> Result<()> {
+    let read: Vec<Role> = args
+        .parts
+        .iter()
+        .map(|p| Role::new("a part", p.as_path()))
+        .collect();
+    if let Some(out) = &args.out {
+        check_files(&read, &[Role::new("--out", out)])?;
+    }
+    let parts = args
+        .parts
+        .iter()
+        .map(|path| {
+            let name = path.display().to_string();
+            let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+            let part: Part = serde_json::from_str(&text).map_err(|e| {
+                Error::json(&name, "a part written by `sisfilt evaluate --shard`", &e)
+            })?;
+            Ok((name, part))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let out = args.out.as_ref().map(|p| Output::create(p)).transpose()?;
+    let start = std::time::Instant::now();
+    let study = sisfilt::evaluate::merge(&parts).map_err(Error::from)?;
+    info(format!(
+        "evaluate-merge: {} parts in {:.3} s",
+        parts.len(),
+        start.elapsed().as_secs_f64()
+    ));
+    match &study {
+        Study::Evaluation(e) => warn_left_out(e, ""),
+        Study::Sweep(s) => {
+            for (p, e) in s.sweep_p.iter().zip(&s.evaluations) {
+                warn_left_out(e, &format!(" at p = {p}"));
+            }
+        }
+    }
+    write_json(out, &study)?;
+    print_table(args.out.as_deref(), &study.table())
 }
 
 /// The table on standard output, or, when the JSON takes standard output (`--out -`), on
 /// standard error (not with `--quiet`), so that a reader such as `jq` gets the JSON alone.
-fn print_table(args: &EvaluateArgs, table: &str) -> Result<()> {
+fn print_table(out: Option<&Path>, table: &str) -> Result<()> {
     let table = table.trim_end_matches('\n');
-    if args.out.as_deref() != Some(Path::new("-")) {
+    if out != Some(Path::new("-")) {
         return print_line(table);
     }
     if verbosity() >= Verbosity::Normal {

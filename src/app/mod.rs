@@ -100,6 +100,9 @@ pub enum Command {
     /// band-k filter, the optimal centralized filter, a filter that knows the dropouts and a
     /// naive one.
     Evaluate(evaluate::EvaluateArgs),
+    /// Add up the parts of a sharded study (`evaluate --shard K/M --out PART`) into the table
+    /// and JSON that one `evaluate` of the whole study gives.
+    EvaluateMerge(evaluate::MergeArgs),
     /// Draw an SVG figure from the files the other commands write.
     #[command(subcommand)]
     Plot(plot::PlotCommand),
@@ -128,6 +131,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Estimate(args) => rayon::scope(|_| estimate::run(&args)),
         Command::Fit(args) => fit::run(&args),
         Command::Evaluate(args) => evaluate::run(&args),
+        Command::EvaluateMerge(args) => evaluate::merge(&args),
         Command::Plot(command) => plot::run(command),
         Command::Completions { shell } => completions::run(shell),
         Command::Man { command } => man::run(&command),
@@ -194,6 +198,9 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
             format!("--true-p: expected a probability in [0, 1], found {p}")
         }
         Error::Evaluate(EvaluateError::EmptySweep) => "--sweep-p: expected at least one value".into(),
+        Error::Evaluate(EvaluateError::MoreShardsThanRuns { count, runs }) => format!(
+            "--shard K/{count} with --runs {runs}: expected at most one shard per run; use fewer shards or more runs"
+        ),
         Error::Evaluate(EvaluateError::SweepP(p)) => {
             format!("--sweep-p: expected probabilities in [0, 1], found {p}")
         }

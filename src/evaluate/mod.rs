@@ -5,7 +5,13 @@
 //! Run `r` (0-based) is simulated with seed `seed + r`. Runs execute in parallel (rayon), and
 //! their sums are merged in run order afterwards, so every figure except the clock readings
 //! is the same for any thread count.
+//!
+//! A study may be cut into shards ([`evaluate_part`]): each runs its block of runs, with the
+//! seeds the whole study gives them, and keeps the sums behind every figure ([`Part`]);
+//! [`merge`] adds the parts in shard order and reports what one run of the whole study
+//! reports (the same sums added in another grouping: equal to rounding, docs/theory.md §11).
 
+use std::ops::Range;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -50,10 +56,39 @@ pub enum EvaluateError {
     EmptySweep,
     #[error("sweep_p: expected probabilities in [0, 1], found {0}")]
     SweepP(f64),
+    #[error(
+        "shard {index}/{count}: expected a shard index below the count, and a count of at least 1"
+    )]
+    Shard { index: usize, count: usize },
+    /// A shard with no run would be a part that says nothing.
+    #[error("{count} shards of {runs} runs: expected at most one shard per run")]
+    MoreShardsThanRuns { count: usize, runs: usize },
+}
+
+/// Parts that do not add up to one study ([`merge`]); each names the parts by the names the
+/// caller gave them (their files).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MergeError {
+    #[error("no parts to merge")]
+    NoParts,
+    #[error("{part}: not a part of the same study as {first}: {what}")]
+    Foreign {
+        part: String,
+        first: String,
+        what: String,
+    },
+    #[error("{part} and {other} are both shard {shard}")]
+    Duplicate {
+        part: String,
+        other: String,
+        shard: Shard,
+    },
+    #[error("shard {missing} of the study is missing (given: {given})")]
+    Missing { missing: String, given: String },
 }
 
 /// Settings of an evaluation.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvaluateOptions {
     pub runs: usize,
     pub seed: u64,
@@ -226,8 +261,9 @@ fn make_filter<'s>(
 }
 
 /// The NEES sums of one filter at each time step (see [`Accuracy::nees_totals`]).
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 struct StepNees {
+    #[serde(with = "crate::io::json_number::many")]
     sum: Vec<f64>,
     terms: Vec<u64>,
     infinite: Vec<u64>,
@@ -250,6 +286,10 @@ impl StepNees {
         }
     }
 
+    fn is_of(&self, steps: usize) -> bool {
+        [self.sum.len(), self.terms.len(), self.infinite.len()] == [steps; 3]
+    }
+
     fn averages(&self) -> Vec<Option<f64>> {
         (0..self.sum.len())
             .map(|t| {
@@ -270,6 +310,7 @@ fn make_smoother(
 }
 
 /// The sums of one filter over one run or several.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct Scores {
     accuracy: Accuracy,
     per_step: StepNees,
@@ -292,9 +333,9 @@ impl Scores {
         }
     }
 
-    /// Adds the sums of one run (whose own ANEES counts for the band).
-    fn merge_run(&mut self, other: &Scores) {
-        self.accuracy.merge_run(&other.accuracy);
+    /// Adds the sums of later runs (of one closed run, [`Accuracy::close_run`], or of a part).
+    fn merge(&mut self, other: &Scores) {
+        self.accuracy.merge(&other.accuracy);
         self.per_step.merge(&other.per_step);
         self.detection.merge(&other.detection);
         self.noted_runs += other.noted_runs;
@@ -405,6 +446,7 @@ fn run_filters(
                     score(t, x_hat, p_hat, f.arrival())?;
                 }
             }
+            acc.close_run();
             Ok(Scores {
                 accuracy: acc,
                 per_step,
@@ -422,17 +464,46 @@ fn run_filters(
     Ok(out)
 }
 
-/// Runs the Monte Carlo comparison with the inputs `inputs` in every run (at least `T` steps of
-/// them); `tick` is called once per finished run, and an error it returns (an interrupt)
-/// stops the study once the runs in progress finish.
-pub fn evaluate(
-    model: &Model,
-    inputs: &RunInputs,
-    config: &str,
-    opts: EvaluateOptions,
-    tick: impl Fn() -> Result<()> + Sync,
-) -> Result<Evaluation> {
-    let start = Instant::now();
+/// The sums of one filter over some of a study's runs: what a [`Part`] carries, and what the
+/// parts of a study add up to.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FilterSums {
+    pub name: Compared,
+    /// Why it did not run, or its first failure among these runs (`failed: run r, …`).
+    pub skipped: Option<String>,
+    /// RMSE per state element, NEES overall, per run and per step, detection.
+    scores: Scores,
+    /// Time spent in it over these runs (seconds).
+    pub wall_time_s: f64,
+    /// What its covariance schedule noted (the same in every part).
+    pub notes: Vec<String>,
+}
+
+/// The sums of every selected filter, in table order, over some of a study's runs.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StudySums {
+    pub filters: Vec<FilterSums>,
+    /// Time of these runs and their set-up (seconds).
+    pub wall_time_s: f64,
+}
+
+impl StudySums {
+    /// Adds the sums of the runs that follow these (the next part): the first failure in
+    /// run order is the one reported.
+    fn add(&mut self, later: &StudySums) {
+        for (sums, later) in self.filters.iter_mut().zip(&later.filters) {
+            sums.scores.merge(&later.scores);
+            sums.wall_time_s += later.wall_time_s;
+            if sums.skipped.is_none() {
+                sums.skipped.clone_from(&later.skipped);
+            }
+        }
+        self.wall_time_s += later.wall_time_s;
+    }
+}
+
+/// Checks the options of an evaluation against `model`; its `T`.
+fn checked_steps(model: &Model, opts: &EvaluateOptions) -> Result<usize> {
     let steps = model.horizon()?;
     if opts.runs == 0 {
         return Err(EvaluateError::NoRuns.into());
@@ -448,9 +519,7 @@ pub fn evaluate(
     if let Some(p) = opts.true_p.filter(|p| !(0.0..=1.0).contains(p)) {
         return Err(EvaluateError::TrueP(p).into());
     }
-    joint_options(&opts)?;
-    let truth = opts.true_p.map(|p| model.with_arrival_probability(p));
-    let truth = truth.as_ref().unwrap_or(model);
+    joint_options(opts)?;
     let d = model.dims;
     // x, y, y with the losses marked, u, and a vector header for each, per step.
     let per_step = (model.subsystems * (d.n + 2 * d.q + d.m) + 12) * std::mem::size_of::<f64>();
@@ -465,6 +534,43 @@ pub fn evaluate(
             ),
         });
     }
+    Ok(steps)
+}
+
+/// The values of `--sweep-p`, checked.
+fn check_sweep(values: &[f64]) -> Result<()> {
+    if values.is_empty() {
+        return Err(EvaluateError::EmptySweep.into());
+    }
+    if let Some(&bad) = values.iter().find(|p| !(0.0..=1.0).contains(*p)) {
+        return Err(EvaluateError::SweepP(bad).into());
+    }
+    Ok(())
+}
+
+/// The inputs `u(t)` of every run, `t = 1..T`: the same in every run.
+fn run_inputs(model: &Model, inputs: &RunInputs, steps: usize) -> Result<Vec<Vec<f64>>> {
+    let mut stream = inputs.stream();
+    let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; steps];
+    for (t, ut) in u.iter_mut().enumerate() {
+        stream.next(t + 1, ut)?;
+    }
+    Ok(u)
+}
+
+/// Runs `runs` of the study (checked options, `T = steps`) and adds up their sums in run
+/// order; `tick` is called once per finished run.
+fn tally(
+    model: &Model,
+    inputs: &RunInputs,
+    opts: &EvaluateOptions,
+    steps: usize,
+    runs: Range<usize>,
+    tick: impl Fn() -> Result<()> + Sync,
+) -> Result<StudySums> {
+    let start = Instant::now();
+    let truth = opts.true_p.map(|p| model.with_arrival_probability(p));
+    let truth = truth.as_ref().unwrap_or(model);
     let selected: Vec<bool> = Compared::all()
         .map(|f| {
             if opts.filters.is_empty() {
@@ -483,9 +589,9 @@ pub fn evaluate(
                 return Some("not selected".to_string());
             }
             if name.is_smoother() {
-                make_smoother(model, name, &opts).err()
+                make_smoother(model, name, opts).err()
             } else {
-                make_filter(model, name, &opts, &none).err()
+                make_filter(model, name, opts, &none).err()
             }
             .map(|e| match e {
                 Error::TransferSolver { .. } => format!(
@@ -498,11 +604,7 @@ pub fn evaluate(
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();
     // The unknown-dropout covariance passes of the centralized and the joint filter do not
     // depend on the data (the inputs are the same in every run): compute them once.
-    let mut stream = inputs.stream();
-    let mut u = vec![vec![0.0; model.subsystems * model.dims.m]; steps];
-    for (t, ut) in u.iter_mut().enumerate() {
-        stream.next(t + 1, ut)?;
-    }
+    let u = run_inputs(model, inputs, steps)?;
     // A smoother replays the means of its filter, so that filter's schedule is needed too.
     let needed = |filter: Compared| {
         Compared::all().any(|f| active[f.index()] && f.smooths().unwrap_or(f) == filter)
@@ -514,7 +616,7 @@ pub fn evaluate(
             .transpose()?,
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| JointSchedule::new(model, joint_options(&opts)?, &u))
+            .then(|| JointSchedule::new(model, joint_options(opts)?, &u))
             .transpose()?,
         smoothers: Vec::new(),
     };
@@ -528,18 +630,18 @@ pub fn evaluate(
             && name.is_smoother()
             && name != Compared::DistributedSmoother
             && name.update() == Update::Linear
-            && smoother_schedule_bytes(model, name, &opts)? <= MAX_SCHEDULE_BYTES as f64
+            && smoother_schedule_bytes(model, name, opts)? <= MAX_SCHEDULE_BYTES as f64
         {
-            SmootherSchedule::new(make_smoother(model, name, &opts)?, model, &u).ok()
+            SmootherSchedule::new(make_smoother(model, name, opts)?, model, &u).ok()
         } else {
             None
         };
         schedules.smoothers.push(schedule);
     }
-    let results: Vec<RunResult> = (0..opts.runs)
+    let results: Vec<RunResult> = runs
         .into_par_iter()
         .map(|r| {
-            let res = run_filters(model, inputs, truth, &opts, &active, &schedules, r);
+            let res = run_filters(model, inputs, truth, opts, &active, &schedules, r);
             tick()?;
             res
         })
@@ -551,7 +653,7 @@ pub fn evaluate(
         for (k, (res, time)) in run.iter().enumerate() {
             times[k] += time;
             match res {
-                Ok(scores) => sums[k].merge_run(scores),
+                Ok(scores) => sums[k].merge(scores),
                 Err(e) if active[k] && skipped[k].is_none() => {
                     skipped[k] = Some(format!("failed: {e}"));
                 }
@@ -559,58 +661,117 @@ pub fn evaluate(
             }
         }
     }
-    let reports: Vec<Option<AccuracyReport>> = (0..COMPARED)
-        .map(|k| skipped[k].is_none().then(|| sums[k].accuracy.report()))
-        .collect();
-    let rmse = |f: Compared| reports[f.index()].as_ref().map(|r| r.rmse_overall);
-    let ratio = |f: Compared, to: Compared| Some(rmse(f)? / rmse(to)?);
     let filters = Compared::all()
-        .filter(|f| selected[f.index()])
-        .map(|name| {
+        .zip(sums)
+        .filter(|(f, _)| selected[f.index()])
+        .map(|(name, scores)| {
             let k = name.index();
+            FilterSums {
+                name,
+                skipped: skipped[k].take(),
+                scores,
+                wall_time_s: times[k],
+                notes: schedules
+                    .smoothers
+                    .get(k)
+                    .and_then(Option::as_ref)
+                    .map_or_else(Vec::new, |s| s.notes.clone()),
+            }
+        })
+        .collect();
+    Ok(StudySums {
+        filters,
+        wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The figures of a study from the sums of all its runs.
+fn evaluation(
+    config: &str,
+    subsystems: usize,
+    steps: usize,
+    opts: EvaluateOptions,
+    sums: StudySums,
+) -> Evaluation {
+    let reports: Vec<(Compared, Option<AccuracyReport>)> = sums
+        .filters
+        .iter()
+        .map(|f| {
+            (
+                f.name,
+                f.skipped.is_none().then(|| f.scores.accuracy.report()),
+            )
+        })
+        .collect();
+    let rmse = |f: Compared| {
+        let (_, report) = reports.iter().find(|(name, _)| *name == f)?;
+        Some(report.as_ref()?.rmse_overall)
+    };
+    let ratio = |f: Compared, to: Compared| Some(rmse(f)? / rmse(to)?);
+    let filters = sums
+        .filters
+        .into_iter()
+        .zip(reports.iter().map(|(_, r)| r.clone()))
+        .map(|(f, accuracy)| {
+            let name = f.name;
+            let ran = f.skipped.is_none();
             FilterResult {
                 name,
                 description: name.description().to_string(),
-                skipped: skipped[k].clone(),
                 rmse_ratio: ratio(name, name.reference()),
                 rmse_ratio_to_filter: name
                     .is_smoother()
                     .then(|| ratio(name, Compared::Centralized))
                     .flatten(),
-                accuracy: reports[k].clone(),
-                detection: (skipped[k].is_none() && name.update() == Update::Mixture)
-                    .then(|| sums[k].detection.report()),
-                wall_time_s: times[k],
-                nees_per_step: if skipped[k].is_none() {
-                    sums[k].per_step.averages()
+                accuracy,
+                detection: (ran && name.update() == Update::Mixture)
+                    .then(|| f.scores.detection.report()),
+                wall_time_s: f.wall_time_s,
+                nees_per_step: if ran {
+                    f.scores.per_step.averages()
                 } else {
                     Vec::new()
                 },
-                notes: schedules
-                    .smoothers
-                    .get(k)
-                    .and_then(Option::as_ref)
-                    .map_or_else(Vec::new, |s| s.notes.clone())
+                notes: f
+                    .notes
                     .into_iter()
-                    .chain(sums[k].first_note.as_ref().map(|note| {
+                    .chain(f.scores.first_note.as_ref().map(|note| {
                         format!(
                             "{} of {} runs; the first: {note}",
-                            sums[k].noted_runs, opts.runs
+                            f.scores.noted_runs, opts.runs
                         )
                     }))
                     .collect(),
+                skipped: f.skipped,
             }
         })
         .collect();
-    Ok(Evaluation {
+    Evaluation {
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.to_string(),
-        subsystems: model.subsystems,
+        subsystems,
         steps,
         options: opts,
         filters,
-        total_wall_time_s: start.elapsed().as_secs_f64(),
-    })
+        total_wall_time_s: sums.wall_time_s,
+    }
+}
+
+/// Runs the Monte Carlo comparison with the inputs `inputs` in every run (at least `T` steps of
+/// them); `tick` is called once per finished run, and an error it returns (an interrupt)
+/// stops the study once the runs in progress finish.
+pub fn evaluate(
+    model: &Model,
+    inputs: &RunInputs,
+    config: &str,
+    opts: EvaluateOptions,
+    tick: impl Fn() -> Result<()> + Sync,
+) -> Result<Evaluation> {
+    let start = Instant::now();
+    let steps = checked_steps(model, &opts)?;
+    let mut sums = tally(model, inputs, &opts, steps, 0..opts.runs, tick)?;
+    sums.wall_time_s = start.elapsed().as_secs_f64();
+    Ok(evaluation(config, model.subsystems, steps, opts, sums))
 }
 
 /// `evaluate --sweep-p`: one evaluation per arrival probability, each on the same seeds (the
@@ -643,12 +804,7 @@ pub fn sweep_p(
     tick: impl Fn() -> Result<()> + Sync,
 ) -> Result<Sweep> {
     let start = Instant::now();
-    if values.is_empty() {
-        return Err(EvaluateError::EmptySweep.into());
-    }
-    if let Some(&bad) = values.iter().find(|p| !(0.0..=1.0).contains(*p)) {
-        return Err(EvaluateError::SweepP(bad).into());
-    }
+    check_sweep(values)?;
     let evaluations = values
         .iter()
         .map(|&p| {
@@ -671,4 +827,294 @@ pub fn sweep_p(
         evaluations,
         total_wall_time_s: start.elapsed().as_secs_f64(),
     })
+}
+
+/// Which of a study's `R` runs a part holds: shard `index` of `count` (from 0), the runs
+/// `⌊index·R/count⌋ ..= ⌊(index+1)·R/count⌋ − 1`, with the seeds the whole study gives them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shard {
+    pub index: usize,
+    pub count: usize,
+}
+
+impl Shard {
+    /// The whole study as one part.
+    pub const WHOLE: Shard = Shard { index: 0, count: 1 };
+
+    pub fn new(index: usize, count: usize) -> Result<Shard, EvaluateError> {
+        if index < count {
+            Ok(Shard { index, count })
+        } else {
+            Err(EvaluateError::Shard { index, count })
+        }
+    }
+
+    /// Its runs (0-based) among `total`.
+    pub fn runs(self, total: usize) -> Range<usize> {
+        let at = |k: usize| (k as u128 * total as u128 / self.count as u128) as usize;
+        at(self.index)..at(self.index + 1)
+    }
+}
+
+/// `K/M`, as `--shard` takes it.
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// One shard of a study: the JSON of `evaluate --shard K/M --out`, which [`merge`] adds up.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Part {
+    pub sisfilt_version: String,
+    pub config: String,
+    /// SHA-256 of the model as read (every matrix, `p`, the initial conditions, the inputs of
+    /// the runs; not the config's name): the parts of one study share it.
+    pub model_sha256: String,
+    pub options: EvaluateOptions,
+    /// The arrival probabilities of `--sweep-p`, or `None` for one evaluation.
+    pub sweep_p: Option<Vec<f64>>,
+    pub shard: Shard,
+    /// Its runs, from the first to one past the last (0-based).
+    pub runs: [usize; 2],
+    pub subsystems: usize,
+    /// The state size `n` of each subsystem.
+    pub n: usize,
+    pub steps: usize,
+    /// One per value of `sweep_p`, or one.
+    pub studies: Vec<StudySums>,
+    /// Time of the part (seconds).
+    pub wall_time_s: f64,
+}
+
+/// SHA-256 of what decides a study's figures besides its options: the model (its name
+/// aside) and the inputs `u` of its runs.
+fn model_digest(model: &Model, u: &[Vec<f64>]) -> String {
+    use sha2::Digest;
+    let mut unnamed = model.clone();
+    unnamed.name.clear();
+    let mut digest = sha2::Sha256::new();
+    // Debug shows every number with the digits that read back to it.
+    digest.update(format!("{:?}", *unnamed).as_bytes());
+    for v in u.iter().flatten() {
+        digest.update(v.to_le_bytes());
+    }
+    digest
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Runs shard `shard` of the study that [`evaluate`] (or with `sweep`, [`sweep_p`]) runs in
+/// whole, and keeps its sums; `tick` is called once per finished run.
+pub fn evaluate_part(
+    model: &Model,
+    inputs: &RunInputs,
+    config: &str,
+    opts: EvaluateOptions,
+    sweep: Option<&[f64]>,
+    shard: Shard,
+    tick: impl Fn() -> Result<()> + Sync,
+) -> Result<Part> {
+    let start = Instant::now();
+    let steps = checked_steps(model, &opts)?;
+    sweep.map(check_sweep).transpose()?;
+    if shard.count > opts.runs {
+        return Err(EvaluateError::MoreShardsThanRuns {
+            count: shard.count,
+            runs: opts.runs,
+        }
+        .into());
+    }
+    let runs = shard.runs(opts.runs);
+    let studies = match sweep {
+        None => vec![tally(model, inputs, &opts, steps, runs.clone(), &tick)?],
+        Some(values) => values
+            .iter()
+            .map(|&p| {
+                let model = model.with_arrival_probability(p);
+                tally(&model, inputs, &opts, steps, runs.clone(), &tick)
+            })
+            .collect::<Result<_>>()?,
+    };
+    Ok(Part {
+        sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
+        config: config.to_string(),
+        model_sha256: model_digest(model, &run_inputs(model, inputs, steps)?),
+        options: opts,
+        sweep_p: sweep.map(<[f64]>::to_vec),
+        shard,
+        runs: [runs.start, runs.end],
+        subsystems: model.subsystems,
+        n: model.dims.n,
+        steps,
+        studies,
+        wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// A whole study: what `evaluate` writes, or with `--sweep-p` what `evaluate --sweep-p`
+/// writes.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Study {
+    Sweep(Sweep),
+    Evaluation(Evaluation),
+}
+
+impl Study {
+    /// The table printed on standard output.
+    pub fn table(&self) -> String {
+        match self {
+            Study::Sweep(s) => s.table(),
+            Study::Evaluation(e) => e.table(),
+        }
+    }
+}
+
+/// Adds up the parts of one study, each with the name its errors call it by (its file), in
+/// shard order, into the figures of the whole study. Refused: parts of different models,
+/// options or versions, two parts of one shard, a shard missing. The wall times are the
+/// parts' summed.
+pub fn merge(parts: &[(String, Part)]) -> Result<Study, MergeError> {
+    let (first_name, first) = parts.first().ok_or(MergeError::NoParts)?;
+    let foreign = |name: &str, what: String| MergeError::Foreign {
+        part: name.to_string(),
+        first: first_name.clone(),
+        what,
+    };
+    let mut by_shard: Vec<Option<(&String, &Part)>> = vec![None; first.shard.count];
+    for (name, part) in parts {
+        let differ = |what: &str, a: &dyn std::fmt::Debug, b: &dyn std::fmt::Debug| {
+            foreign(name, format!("{what} differ ({a:?} and {b:?})"))
+        };
+        if part.sisfilt_version != first.sisfilt_version {
+            return Err(differ(
+                "sisfilt versions",
+                &part.sisfilt_version,
+                &first.sisfilt_version,
+            ));
+        }
+        if part.model_sha256 != first.model_sha256 {
+            return Err(foreign(
+                name,
+                "the models differ (config, --set values or inputs)".into(),
+            ));
+        }
+        if part.options != first.options {
+            return Err(foreign(
+                name,
+                option_difference(&part.options, &first.options),
+            ));
+        }
+        if part.sweep_p != first.sweep_p {
+            return Err(differ("--sweep-p values", &part.sweep_p, &first.sweep_p));
+        }
+        if part.shard.count != first.shard.count {
+            return Err(differ(
+                "shard counts",
+                &part.shard.count,
+                &first.shard.count,
+            ));
+        }
+        let checked = Shard::new(part.shard.index, part.shard.count)
+            .ok()
+            .filter(|s| {
+                s.runs(part.options.runs) == (part.runs[0]..part.runs[1])
+                    && part.studies.len() == first.studies.len()
+                    && part.studies.iter().zip(&first.studies).all(|(a, b)| {
+                        names(a) == names(b)
+                            && a.filters.iter().all(|f| {
+                                f.scores.accuracy.is_of(first.n)
+                                    && f.scores.per_step.is_of(first.steps)
+                            })
+                    })
+            })
+            .ok_or_else(|| {
+                foreign(
+                    name,
+                    "its shard, runs or filters are not those of a part".into(),
+                )
+            })?;
+        match &by_shard[checked.index] {
+            Some((other, _)) => {
+                return Err(MergeError::Duplicate {
+                    part: name.clone(),
+                    other: (*other).clone(),
+                    shard: checked,
+                });
+            }
+            None => by_shard[checked.index] = Some((name, part)),
+        }
+    }
+    let missing: Vec<String> = by_shard
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.is_none())
+        .map(|(k, _)| format!("{k}/{}", first.shard.count))
+        .collect();
+    if !missing.is_empty() {
+        let given: Vec<String> = parts.iter().map(|(name, _)| name.clone()).collect();
+        return Err(MergeError::Missing {
+            missing: missing.join(", "),
+            given: given.join(", "),
+        });
+    }
+    let mut in_order = by_shard.into_iter().flatten().map(|(_, part)| part);
+    let mut sums = in_order.next().expect("one part at least").studies.clone();
+    for part in in_order {
+        for (study, later) in sums.iter_mut().zip(&part.studies) {
+            study.add(later);
+        }
+    }
+    let figures = |sums: StudySums| {
+        evaluation(
+            &first.config,
+            first.subsystems,
+            first.steps,
+            first.options.clone(),
+            sums,
+        )
+    };
+    Ok(match &first.sweep_p {
+        None => Study::Evaluation(figures(sums.remove(0))),
+        Some(values) => {
+            let total_wall_time_s = sums.iter().map(|s| s.wall_time_s).sum();
+            Study::Sweep(Sweep {
+                sisfilt_version: first.sisfilt_version.clone(),
+                config: first.config.clone(),
+                options: first.options.clone(),
+                subsystems: first.subsystems,
+                steps: first.steps,
+                sweep_p: values.clone(),
+                evaluations: sums.into_iter().map(figures).collect(),
+                total_wall_time_s,
+            })
+        }
+    })
+}
+
+/// The first option in which `options` differ from `first`'s, in words.
+fn option_difference(options: &EvaluateOptions, first: &EvaluateOptions) -> String {
+    let (serde_json::Value::Object(a), serde_json::Value::Object(b)) = (
+        serde_json::to_value(options).expect("options serialise"),
+        serde_json::to_value(first).expect("options serialise"),
+    ) else {
+        unreachable!("options serialise as a map")
+    };
+    a.iter()
+        .find(|(key, value)| b.get(*key) != Some(value))
+        .map_or_else(
+            || "the options differ".into(),
+            |(key, value)| {
+                let theirs = b.get(key).unwrap_or(&serde_json::Value::Null);
+                format!("the options differ: {key} {value} against {theirs}")
+            },
+        )
+}
+
+/// The filters of a part's study, in order.
+fn names(sums: &StudySums) -> Vec<Compared> {
+    sums.filters.iter().map(|f| f.name).collect()
 }

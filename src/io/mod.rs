@@ -5,6 +5,7 @@ pub mod csv_in;
 pub mod csv_out;
 pub mod estimates;
 pub mod files;
+pub mod json_number;
 pub mod output;
 pub mod run_record;
 

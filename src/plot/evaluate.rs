@@ -86,8 +86,15 @@ fn read(path: &Path) -> Result<EvaluationFile> {
     struct Kind {
         sweep_p: Option<IgnoredAny>,
         filters: Option<IgnoredAny>,
+        studies: Option<IgnoredAny>,
     }
     let kind: Kind = serde_json::from_str(&text).map_err(syntax)?;
+    if kind.studies.is_some() {
+        return Err(not_eval(
+            "it is one part of a sharded study (`evaluate --shard`); add the parts up with `sisfilt evaluate-merge PART... --out FILE` and plot that".into(),
+        )
+        .into());
+    }
     match (kind.sweep_p, kind.filters) {
         (Some(_), _) => {
             let sweep: Sweep = serde_json::from_str(&text).map_err(syntax)?;

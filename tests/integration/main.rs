@@ -27,5 +27,6 @@ mod python_package;
 mod reference_filters;
 mod run_api;
 mod settings;
+mod shards;
 mod simulate_cli;
 mod smoother;

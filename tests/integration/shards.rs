@@ -1,0 +1,273 @@
+//! A study cut into shards (`evaluate --shard K/M`), run as separate processes side by side and
+//! added up by `evaluate-merge`, reports what one `evaluate` of the whole study reports (the
+//! same sums added in another grouping: equal to 1e−12 relative); parts that are not one
+//! study are refused, naming their files.
+
+use std::path::{Path, PathBuf};
+
+use crate::common::{one_error_line, shipped_config, sisfilt};
+
+/// The JSON in `path`.
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Asserts that `a` and `b` hold the same keys, strings, integers and `null`s, and numbers
+/// within `rel` of each other, but for the clock readings (keys with `time`); the largest
+/// relative gap.
+fn assert_close(a: &serde_json::Value, b: &serde_json::Value, rel: f64, at: &str) -> f64 {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let keys = |m: &serde_json::Map<String, Value>| m.keys().cloned().collect::<Vec<_>>();
+            assert_eq!(keys(x), keys(y), "{at}");
+            x.iter()
+                .filter(|(k, _)| !k.contains("time"))
+                .map(|(k, v)| assert_close(v, &y[k], rel, &format!("{at}.{k}")))
+                .fold(0.0, f64::max)
+        }
+        (Value::Array(x), Value::Array(y)) => {
+            assert_eq!(x.len(), y.len(), "{at}");
+            x.iter()
+                .zip(y)
+                .enumerate()
+                .map(|(i, (u, v))| assert_close(u, v, rel, &format!("{at}[{i}]")))
+                .fold(0.0, f64::max)
+        }
+        (Value::Number(x), Value::Number(y)) if x.is_f64() || y.is_f64() => {
+            let (x, y) = (x.as_f64().unwrap(), y.as_f64().unwrap());
+            let gap = (x - y).abs() / x.abs().max(y.abs()).max(f64::MIN_POSITIVE);
+            assert!(gap <= rel, "{at}: {x} and {y}");
+            gap
+        }
+        _ => {
+            assert_eq!(a, b, "{at}");
+            0.0
+        }
+    }
+}
+
+/// Runs `evaluate` of `paper.toml` with `args`, once whole and as four shards side by side
+/// (separate processes), merges the parts and compares; the parts' files.
+fn four_shards_merge_to_the_whole(dir: &Path, args: &[&str]) -> Vec<PathBuf> {
+    let config = shipped_config("paper.toml");
+    let whole = dir.join("whole.json");
+    sisfilt()
+        .arg("evaluate")
+        .arg(&config)
+        .args(args)
+        .arg("--out")
+        .arg(&whole)
+        .assert()
+        .success();
+    let parts: Vec<PathBuf> = (0..4).map(|k| dir.join(format!("part-{k}.json"))).collect();
+    let running: Vec<std::process::Child> = parts
+        .iter()
+        .enumerate()
+        .map(|(k, part)| {
+            std::process::Command::new(env!("CARGO_BIN_EXE_sisfilt"))
+                .arg("evaluate")
+                .arg(&config)
+                .args(args)
+                .args(["--shard", &format!("{k}/4"), "--out"])
+                .arg(part)
+                .env("RAYON_NUM_THREADS", "1")
+                .stdout(std::process::Stdio::null())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for mut child in running {
+        assert!(child.wait().unwrap().success());
+    }
+    let merged = dir.join("merged.json");
+    // Any order of the parts on the command line.
+    let out = sisfilt()
+        .arg("evaluate-merge")
+        .args(parts.iter().rev())
+        .arg("--out")
+        .arg(&merged)
+        .assert()
+        .success();
+    let gap = assert_close(&json(&whole), &json(&merged), 1e-12, "");
+    eprintln!("largest relative gap, merged against whole: {gap:.2e}");
+    // The table is the whole study's (its clock column aside).
+    let table = String::from_utf8_lossy(&out.get_output().stdout).to_string();
+    assert!(
+        table.contains("paper.toml: 40 runs (seeds 3..42)"),
+        "{table}"
+    );
+    parts
+}
+
+#[test]
+fn four_shards_merge_to_the_whole_study_with_smoothers() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["--runs", "40", "--seed", "3", "--smooth"];
+    let parts = four_shards_merge_to_the_whole(dir.path(), &args);
+    // Each part holds its block of runs, with the sums per state element and per step.
+    for (k, part) in parts.iter().enumerate() {
+        let part = json(part);
+        assert_eq!(part["shard"], serde_json::json!({"index": k, "count": 4}));
+        assert_eq!(part["runs"], serde_json::json!([10 * k, 10 * k + 10]));
+        let first = &part["studies"][0]["filters"][0];
+        assert_eq!(
+            first["scores"]["accuracy"]["sum_sq"]
+                .as_array()
+                .unwrap()
+                .len(),
+            2
+        );
+        assert_eq!(
+            first["scores"]["per_step"]["sum"].as_array().unwrap().len(),
+            150
+        );
+        assert_eq!(first["scores"]["accuracy"]["runs"], 10);
+    }
+    // `plot evaluate` draws the merged study and sends a part back to the merge.
+    let svg = dir.path().join("merged.svg");
+    sisfilt()
+        .args(["plot", "evaluate", "--input"])
+        .arg(dir.path().join("merged.json"))
+        .arg("--out")
+        .arg(&svg)
+        .assert()
+        .success();
+    let refused = sisfilt()
+        .args(["plot", "evaluate", "--input"])
+        .arg(&parts[0])
+        .arg("--out")
+        .arg(dir.path().join("part.svg"))
+        .assert()
+        .code(2);
+    let line = one_error_line(&refused.get_output().stderr);
+    assert!(
+        line.contains("part-0.json") && line.contains("evaluate-merge"),
+        "{line}"
+    );
+}
+
+#[test]
+fn four_shards_merge_to_the_whole_sweep_with_a_true_p() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "--runs",
+        "40",
+        "--sweep-p",
+        "0.6,0.9",
+        "--true-p",
+        "0.8",
+        "--filters",
+        "distributed,joint,centralized,joint-mixture",
+    ];
+    four_shards_merge_to_the_whole(dir.path(), &args);
+}
+
+/// Runs one shard of `paper.toml` (`--runs 8`) with `extra` into `dir/name`.
+fn part(dir: &Path, name: &str, shard: &str, extra: &[&str]) -> PathBuf {
+    let path = dir.join(name);
+    sisfilt()
+        .arg("evaluate")
+        .arg(shipped_config("paper.toml"))
+        .args(["--runs", "8", "--filters", "joint", "--shard", shard])
+        .args(extra)
+        .arg("--out")
+        .arg(&path)
+        .assert()
+        .success();
+    path
+}
+
+/// The one error line of `evaluate-merge` of `parts` (exit 2), which writes nothing.
+fn refused(dir: &Path, parts: &[&PathBuf]) -> String {
+    let out = dir.join("merged.json");
+    let run = sisfilt()
+        .arg("evaluate-merge")
+        .args(parts)
+        .arg("--out")
+        .arg(&out)
+        .assert()
+        .code(2);
+    assert!(!out.exists());
+    one_error_line(&run.get_output().stderr)
+}
+
+#[test]
+fn a_missing_a_duplicated_and_a_foreign_shard_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let p0 = part(d, "p0.json", "0/3", &[]);
+    let p1 = part(d, "p1.json", "1/3", &[]);
+    let p2 = part(d, "p2.json", "2/3", &[]);
+    let again = part(d, "again.json", "1/3", &[]);
+    let line = refused(d, &[&p0, &p2]);
+    assert!(
+        line.contains("shard 1/3") && line.contains("missing"),
+        "{line}"
+    );
+    let line = refused(d, &[&p0, &p1, &again, &p2]);
+    assert!(
+        line.contains("again.json") && line.contains("p1.json") && line.contains("shard 1/3"),
+        "{line}"
+    );
+    // Another model (a --set value), other options, another cut.
+    let other_p = part(d, "other-p.json", "1/3", &["--set", "dropout.p=0.5"]);
+    let line = refused(d, &[&p0, &other_p, &p2]);
+    assert!(
+        line.contains("other-p.json") && line.contains("models differ"),
+        "{line}"
+    );
+    let other_seed = part(d, "other-seed.json", "1/3", &["--seed", "99"]);
+    let line = refused(d, &[&p0, &other_seed, &p2]);
+    assert!(
+        line.contains("other-seed.json") && line.contains("options differ"),
+        "{line}"
+    );
+    let halves = part(d, "half.json", "1/2", &[]);
+    let line = refused(d, &[&p0, &halves, &p2]);
+    assert!(
+        line.contains("half.json") && line.contains("shard counts"),
+        "{line}"
+    );
+    // A file that is no part at all.
+    let table = crate::common::write_file(d, "table.json", "{\"filters\": []}");
+    let line = refused(d, &[&p0, &table]);
+    assert!(
+        line.contains("table.json: line 1") && line.contains("evaluate --shard"),
+        "{line}"
+    );
+    // The three together are the study.
+    sisfilt()
+        .arg("evaluate-merge")
+        .args([&p2, &p0, &p1])
+        .assert()
+        .success();
+}
+
+#[test]
+fn a_shard_out_of_range_or_more_shards_than_runs_is_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    for (shard, runs, expected) in [
+        ("4/4", "8", "expected K/M with 0 ≤ K < M"),
+        ("1/0", "8", "expected K/M"),
+        ("a/4", "8", "expected K/M"),
+        ("3/16", "8", "at most one shard per run"),
+    ] {
+        let run = sisfilt()
+            .arg("evaluate")
+            .arg(shipped_config("paper.toml"))
+            .args(["--runs", runs, "--shard", shard, "--out"])
+            .arg(dir.path().join("p.json"))
+            .assert()
+            .code(2);
+        let stderr = String::from_utf8_lossy(&run.get_output().stderr).to_string();
+        assert!(stderr.contains(expected), "{shard}: {stderr}");
+    }
+    // A part goes to a file.
+    sisfilt()
+        .arg("evaluate")
+        .arg(shipped_config("paper.toml"))
+        .args(["--runs", "8", "--shard", "0/2"])
+        .assert()
+        .code(2);
+}
