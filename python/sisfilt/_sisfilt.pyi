@@ -118,4 +118,6 @@ def evaluate(
     smooth: bool = False,
     sweep_p: Optional[Sequence[float]] = None,
     true_p: Optional[float] = None,
+    shard: Optional[Tuple[int, int]] = None,
 ) -> dict: ...
+def evaluate_merge(parts: Sequence[dict]) -> dict: ...

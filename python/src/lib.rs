@@ -792,12 +792,13 @@ fn fit<'py>(
 /// The Monte Carlo comparison of `sisfilt evaluate`: `runs` runs (seeds `seed..seed+runs−1`,
 /// default the config's) of every filter (or those named in `filters`) on the same simulated
 /// realisations; with `sweep_p`, once per assumed arrival probability. Returns the JSON of
-/// `evaluate --out` as a dict.
+/// `evaluate --out` as a dict; with `shard = (K, M)` only shard `K` of `M` of the study, as
+/// `evaluate --shard K/M --out` writes it, for [`evaluate_merge`].
 #[pyfunction]
 #[pyo3(signature = (
     model, runs, *, seed = None, burn_in = 0, max_lifted = DEFAULT_MAX_LIFTED,
     band = sisfilt::filter::joint::DEFAULT_BAND, loading = None, filters = None, smooth = false,
-    sweep_p = None, true_p = None
+    sweep_p = None, true_p = None, shard = None
 ))]
 #[allow(clippy::too_many_arguments)]
 fn evaluate<'py>(
@@ -813,7 +814,12 @@ fn evaluate<'py>(
     smooth: bool,
     sweep_p: Option<Vec<f64>>,
     true_p: Option<f64>,
+    shard: Option<(usize, usize)>,
 ) -> PyResult<Bound<'py, PyAny>> {
+    let shard = shard
+        .map(|(index, count)| sisfilt::evaluate::Shard::new(index, count))
+        .transpose()
+        .map_err(|e| py_err(e.into()))?;
     let filters = filters
         .unwrap_or_default()
         .iter()
@@ -839,17 +845,49 @@ fn evaluate<'py>(
     let value = without_gil(py, |interrupt| -> sisfilt::Result<serde_json::Value> {
         let tick = || interrupt.check();
         let inputs = sisfilt::inputs::RunInputs::of_model(&m)?;
-        Ok(match sweep_p {
-            Some(values) => serde_json::to_value(sisfilt::evaluate::sweep_p(
-                &m, &inputs, &name, opts, &values, tick,
+        let sweep = sweep_p.as_deref();
+        Ok(match (shard, sweep) {
+            (Some(shard), _) => serde_json::to_value(sisfilt::evaluate::evaluate_part(
+                &m, &inputs, &name, opts, sweep, shard, tick,
             )?),
-            None => {
+            (None, Some(values)) => serde_json::to_value(sisfilt::evaluate::sweep_p(
+                &m, &inputs, &name, opts, values, tick,
+            )?),
+            (None, None) => {
                 serde_json::to_value(sisfilt::evaluate::evaluate(&m, &inputs, &name, opts, tick)?)
             }
         }
         .expect("an evaluation serialises"))
     })?;
     to_python(py, &value)
+}
+
+/// The parts of a sharded study (`evaluate(…, shard=(K, M))`, or the JSON files of `evaluate
+/// --shard K/M --out`, read with `json.load`), every shard once and in any order, added up
+/// into the dict `evaluate` returns for the whole study. Parts of different studies, a shard
+/// given twice or one missing raise `ValueError` naming them by their place in `parts`.
+#[pyfunction]
+fn evaluate_merge<'py>(
+    py: Python<'py>,
+    parts: Vec<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let dumps = py.import("json")?.getattr("dumps")?;
+    let parts = parts
+        .iter()
+        .enumerate()
+        .map(|(k, part)| {
+            let name = format!("parts[{k}]");
+            let text: String = dumps.call1((part,))?.extract()?;
+            let part = serde_json::from_str(&text).map_err(|e| {
+                PyValueError::new_err(format!(
+                    "{name}: not a part of a study (evaluate(…, shard=(K, M))): {e}"
+                ))
+            })?;
+            Ok((name, part))
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    let study = sisfilt::evaluate::merge(&parts).map_err(|e| py_err(e.into()))?;
+    to_python(py, &study)
 }
 
 /// The Python module `sisfilt._sisfilt`, re-exported by `sisfilt`.
@@ -862,6 +900,7 @@ fn _sisfilt(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_function(wrap_pyfunction!(estimate, module)?)?;
     module.add_function(wrap_pyfunction!(fit, module)?)?;
     module.add_function(wrap_pyfunction!(evaluate, module)?)?;
+    module.add_function(wrap_pyfunction!(evaluate_merge, module)?)?;
     module.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

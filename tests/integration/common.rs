@@ -353,7 +353,8 @@ pub fn platoon_with_gaps(
 
 /// The Python of the tests that need numpy, pandas, pytest and maturin (files written by numpy
 /// and pandas, the Python package): `SISFILT_TEST_PYTHON`, else the virtual environment
-/// `target/test-python`, made with those packages (from PyPI) the first time a test needs it.
+/// `target/test-python`, made with those packages (from PyPI) the first time a test needs it;
+/// `dask[distributed]` is added where pip can install it.
 /// `None`, said on standard error, when there is none and none can be made: those tests then
 /// pass without running.
 pub fn test_python() -> Option<&'static str> {
@@ -372,6 +373,7 @@ pub fn test_python() -> Option<&'static str> {
             if let Some(python) = std::env::var_os("SISFILT_TEST_PYTHON") {
                 let python = PathBuf::from(python);
                 if ready(&python) {
+                    with_dask(&python);
                     return Some(python.display().to_string());
                 }
                 eprintln!(
@@ -396,7 +398,30 @@ pub fn test_python() -> Option<&'static str> {
                     return None;
                 }
             }
+            with_dask(&python);
             Some(python.display().to_string())
         })
         .as_deref()
+}
+
+/// Installs `dask[distributed]` (from PyPI) into the test Python when it lacks it, for the test
+/// of the README's Dask recipe, which says it is skipped when that cannot be done.
+fn with_dask(python: &Path) {
+    let has = || {
+        std::process::Command::new(python)
+            .args(["-c", "import dask.distributed"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if !has() {
+        let _ = std::process::Command::new(python)
+            .args(["-m", "pip", "install", "--quiet", "dask[distributed]"])
+            .status();
+    }
+    if !has() {
+        eprintln!(
+            "note: {} has no dask[distributed] and pip could not install it: the Dask test is skipped",
+            python.display()
+        );
+    }
 }

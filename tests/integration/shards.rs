@@ -271,3 +271,163 @@ fn a_shard_out_of_range_or_more_shards_than_runs_is_bad_input() {
         .assert()
         .code(2);
 }
+
+/// A folder as a user's: `configs/platoon.toml`, with this build's `sisfilt` first on `PATH`.
+fn user_folder() -> (tempfile::TempDir, std::ffi::OsString) {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("configs")).unwrap();
+    std::fs::copy(
+        shipped_config("platoon.toml"),
+        dir.path().join("configs/platoon.toml"),
+    )
+    .unwrap();
+    let bin = Path::new(env!("CARGO_BIN_EXE_sisfilt")).parent().unwrap();
+    let path = std::env::join_paths(std::iter::once(bin.to_path_buf()).chain(
+        std::env::split_paths(&std::env::var_os("PATH").unwrap_or_default()),
+    ))
+    .unwrap();
+    (dir, path)
+}
+
+/// Runs `script` with `bash -c` (which runs the pods' `sh -c` lines alike) in `dir`, with `PATH`
+/// and `env` set.
+fn shell(dir: &Path, path: &std::ffi::OsStr, script: &str, env: &[(&str, String)]) {
+    let out = std::process::Command::new("bash")
+        .args(["-c", script])
+        .current_dir(dir)
+        .env("PATH", path)
+        .envs(env.iter().map(|(k, v)| (k, v)))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{script}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The JSON of one `evaluate configs/platoon.toml` in `dir` with `args`, against `merged`.
+fn merged_equals_the_whole(dir: &Path, merged: &Path, args: &[&str]) {
+    let whole = dir.join("whole.json");
+    sisfilt()
+        .current_dir(dir)
+        .args(["evaluate", "configs/platoon.toml"])
+        .args(args)
+        .arg("--out")
+        .arg(&whole)
+        .assert()
+        .success();
+    let gap = assert_close(&json(&whole), &json(merged), 1e-12, "");
+    eprintln!("{}: largest relative gap {gap:.2e}", merged.display());
+}
+
+/// The text of the repository's file `path`.
+fn shipped(path: &str) -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(path)).unwrap()
+}
+
+/// The first line of `text` that holds `what`, as a command (a YAML list item's `- ` and a
+/// shell line's continuation joined).
+fn command_line(text: &str, what: &str) -> String {
+    let joined = text.replace("\\\n", " ");
+    let line = joined.lines().find(|l| l.contains(what)).unwrap();
+    line.trim().trim_start_matches("- ").to_string()
+}
+
+/// The README's GNU parallel recipe as written but for the number of runs, where GNU parallel
+/// is installed (else said on standard error).
+#[test]
+fn the_readmes_gnu_parallel_recipe() {
+    let readme = shipped("README.md");
+    let recipe = readme
+        .split("<!-- recipe: parallel -->\n```sh\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```\n<!-- end recipe -->").next())
+        .expect("the README's GNU parallel recipe");
+    assert!(recipe.contains("--runs 800 --shard {}/8"), "{recipe}");
+    let has_parallel = std::process::Command::new("parallel")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !has_parallel {
+        eprintln!("skipped: GNU parallel is not installed");
+        return;
+    }
+    let (dir, path) = user_folder();
+    shell(
+        dir.path(),
+        &path,
+        &recipe.replace("--runs 800", "--runs 24"),
+        &[],
+    );
+    merged_equals_the_whole(
+        dir.path(),
+        &dir.path().join("study.json"),
+        &["--runs", "24"],
+    );
+}
+
+/// The Slurm job array as Slurm runs it (each task with its `SLURM_ARRAY_TASK_ID`; the
+/// `#SBATCH` lines are comments to the shell) but for the number of runs, then the merge of
+/// its header's second job.
+#[test]
+fn the_slurm_array_recipe_as_slurm_runs_it() {
+    let script = shipped("examples/cluster/slurm-array.sh");
+    assert!(script.contains("#SBATCH --array=0-63") && script.contains("--runs 6400"));
+    let script = script.replace("--runs 6400", "--runs 64");
+    let merge = command_line(&script, "--wrap");
+    let merge = merge.split('\'').nth(1).expect("the merge job's command");
+    let (dir, path) = user_folder();
+    for task in 0..64 {
+        shell(
+            dir.path(),
+            &path,
+            &script,
+            &[
+                ("SLURM_ARRAY_TASK_ID", task.to_string()),
+                ("SLURM_CPUS_PER_TASK", "1".into()),
+            ],
+        );
+    }
+    shell(dir.path(), &path, merge, &[]);
+    merged_equals_the_whole(
+        dir.path(),
+        &dir.path().join("study.json"),
+        &["--runs", "64", "--smooth"],
+    );
+}
+
+/// The Kubernetes Indexed Job's command as each pod runs it (`JOB_COMPLETION_INDEX`), with the
+/// volumes as folders and fewer runs, then the merge Job's command.
+#[test]
+fn the_kubernetes_indexed_job_recipe_as_its_pods_run_it() {
+    let job = shipped("examples/cluster/k8s-indexed-job.yaml");
+    assert!(job.contains("completionMode: Indexed") && job.contains("completions: 16"));
+    let local = |command: String| {
+        command
+            .replace("/configs/", "configs/")
+            .replace("/parts/", "parts/")
+            .replace("--runs 1600", "--runs 32")
+    };
+    let shard = local(command_line(&job, "sisfilt evaluate "));
+    let merge = local(command_line(
+        &shipped("examples/cluster/k8s-merge-job.yaml"),
+        "sisfilt evaluate-merge",
+    ));
+    let (dir, path) = user_folder();
+    std::fs::create_dir(dir.path().join("parts")).unwrap();
+    for index in 0..16 {
+        shell(
+            dir.path(),
+            &path,
+            &shard,
+            &[("JOB_COMPLETION_INDEX", index.to_string())],
+        );
+    }
+    shell(dir.path(), &path, &merge, &[]);
+    merged_equals_the_whole(
+        dir.path(),
+        &dir.path().join("parts/study.json"),
+        &["--runs", "32", "--smooth"],
+    );
+}
