@@ -55,7 +55,7 @@ def test_a_part_equals_the_command_lines_part(cli, tmp_path):
 
 def test_parts_that_are_not_one_study_raise_value_error():
     parts = [sisfilt.evaluate(model(), RUNS, shard=(k, 3)) for k in range(3)]
-    with pytest.raises(ValueError, match=r"shard 1/3 of the study is missing"):
+    with pytest.raises(ValueError, match=r"missing from the study: shard 1/3 "):
         sisfilt.evaluate_merge([parts[0], parts[2]])
     with pytest.raises(ValueError, match=r"parts\[2\] and parts\[1\] are both shard 1/3"):
         sisfilt.evaluate_merge([parts[0], parts[1], parts[1], parts[2]])

@@ -77,14 +77,18 @@ pub enum MergeError {
         first: String,
         what: String,
     },
+    /// Its shard, runs and sums do not go together (a file edited by hand, or damaged).
+    #[error("{part}: not a part written by `evaluate --shard`: {what}")]
+    NotAPart { part: String, what: String },
     #[error("{part} and {other} are both shard {shard}")]
     Duplicate {
         part: String,
         other: String,
         shard: Shard,
     },
-    #[error("shard {missing} of the study is missing (given: {given})")]
-    Missing { missing: String, given: String },
+    /// `shards` lists the first few that are missing, and how many more.
+    #[error("missing from the study: {shards} (given: {given})")]
+    Missing { shards: String, given: String },
 }
 
 /// Settings of an evaluation.
@@ -984,7 +988,7 @@ pub fn merge(parts: &[(String, Part)]) -> Result<Study, MergeError> {
         first: first_name.clone(),
         what,
     };
-    let mut by_shard: Vec<Option<(&String, &Part)>> = vec![None; first.shard.count];
+    let mut by_shard: std::collections::BTreeMap<usize, (&String, &Part)> = Default::default();
     for (name, part) in parts {
         let differ = |what: &str, a: &dyn std::fmt::Debug, b: &dyn std::fmt::Debug| {
             foreign(name, format!("{what} differ ({a:?} and {b:?})"))
@@ -1031,37 +1035,38 @@ pub fn merge(parts: &[(String, Part)]) -> Result<Study, MergeError> {
                             })
                     })
             })
-            .ok_or_else(|| {
-                foreign(
-                    name,
-                    "its shard, runs or filters are not those of a part".into(),
-                )
+            .ok_or_else(|| MergeError::NotAPart {
+                part: name.clone(),
+                what: "its shard, runs and sums do not go together".into(),
             })?;
-        match &by_shard[checked.index] {
-            Some((other, _)) => {
-                return Err(MergeError::Duplicate {
-                    part: name.clone(),
-                    other: (*other).clone(),
-                    shard: checked,
-                });
-            }
-            None => by_shard[checked.index] = Some((name, part)),
+        if let Some((other, _)) = by_shard.insert(checked.index, (name, part)) {
+            return Err(MergeError::Duplicate {
+                part: name.clone(),
+                other: other.clone(),
+                shard: checked,
+            });
         }
     }
-    let missing: Vec<String> = by_shard
-        .iter()
-        .enumerate()
-        .filter(|(_, p)| p.is_none())
-        .map(|(k, _)| format!("{k}/{}", first.shard.count))
-        .collect();
-    if !missing.is_empty() {
+    let count = first.shard.count;
+    if by_shard.len() < count {
+        // The count may be far larger than the parts given: name the first few missing.
+        const NAMED: usize = 5;
+        let mut shards: Vec<String> = (0..count)
+            .filter(|k| !by_shard.contains_key(k))
+            .take(NAMED)
+            .map(|k| format!("shard {k}/{count}"))
+            .collect();
+        let more = count - by_shard.len() - shards.len();
+        if more > 0 {
+            shards.push(format!("and {more} more"));
+        }
         let given: Vec<String> = parts.iter().map(|(name, _)| name.clone()).collect();
         return Err(MergeError::Missing {
-            missing: missing.join(", "),
+            shards: shards.join(", "),
             given: given.join(", "),
         });
     }
-    let mut in_order = by_shard.into_iter().flatten().map(|(_, part)| part);
+    let mut in_order = by_shard.into_values().map(|(_, part)| part);
     let mut sums = in_order.next().expect("one part at least").studies.clone();
     for part in in_order {
         for (study, later) in sums.iter_mut().zip(&part.studies) {

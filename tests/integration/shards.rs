@@ -236,6 +236,28 @@ fn a_missing_a_duplicated_and_a_foreign_shard_are_refused_by_name() {
         line.contains("table.json: line 1") && line.contains("evaluate --shard"),
         "{line}"
     );
+    // Parts edited by hand: sums of another length; a count far above the parts given, whose
+    // missing shards are named a few at a time.
+    let edited = |name: &str, edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut doc = json(&p0);
+        edit(&mut doc);
+        crate::common::write_file(d, name, &doc.to_string())
+    };
+    let short = edited("short.json", &|doc| {
+        doc["studies"][0]["filters"][0]["scores"]["per_step"]["sum"] = serde_json::json!([1.0]);
+    });
+    let line = refused(d, &[&short, &p1, &p2]);
+    assert!(line.contains("short.json: not a part written by"), "{line}");
+    let huge = edited("huge.json", &|doc| {
+        doc["shard"]["count"] = serde_json::json!(1u64 << 60);
+        doc["options"]["runs"] = serde_json::json!(1u64 << 60);
+        doc["runs"] = serde_json::json!([0, 1]);
+    });
+    let line = refused(d, &[&huge]);
+    assert!(
+        line.contains("shard 5/1152921504606846976, and 1152921504606846970 more"),
+        "{line}"
+    );
     // The three together are the study.
     sisfilt()
         .arg("evaluate-merge")
