@@ -26,21 +26,41 @@ use sisfilt::model::Model;
 struct Counting;
 
 static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+/// Bytes allocated and not yet freed, and the most of them since [`peak_bytes_in`] reset it.
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+fn grow(bytes: usize) {
+    let live = LIVE.fetch_add(bytes, Ordering::Relaxed) + bytes;
+    PEAK.fetch_max(live, Ordering::Relaxed);
+}
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        grow(layout.size());
         unsafe { System.alloc(layout) }
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
         unsafe { System.dealloc(ptr, layout) }
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+        grow(new_size);
         unsafe { System.realloc(ptr, layout, new_size) }
     }
+}
+
+/// The most bytes held at once while `f` runs, beyond those held when it starts.
+fn peak_bytes_in(f: impl FnOnce()) -> usize {
+    let before = LIVE.load(Ordering::SeqCst);
+    PEAK.store(before, Ordering::SeqCst);
+    f();
+    PEAK.load(Ordering::SeqCst) - before
 }
 
 #[global_allocator]
@@ -72,8 +92,12 @@ fn allocations_in(mut f: impl FnMut()) -> usize {
 }
 
 fn model(subsystems: usize, p: &str, extra: &str) -> Model {
+    model_of(subsystems, 13, p, extra)
+}
+
+fn model_of(subsystems: usize, steps: usize, p: &str, extra: &str) -> Model {
     let text = format!(
-        "subsystems = {subsystems}\nsteps = 13\n[interconnection]\nplus = 1\nminus = 1\n\
+        "subsystems = {subsystems}\nsteps = {steps}\n[interconnection]\nplus = 1\nminus = 1\n\
          [model]\nA = [[0.9, 0.1], [-0.1, 0.8]]\nB = [[0.1, 0.05], [0.05, 0.1]]\n\
          C = [[0.0], [0.1]]\nD = [[0.3, 0.1], [0.1, 0.3]]\nG = [[0.1, 0.2], [0.2, 0.1]]\n\
          J = [[1.0, 0.0]]\nR = [[0.1]]\nM = [[0.1]]\nQ = [[0.01, 0.0], [0.0, 0.01]]\n\
@@ -389,4 +413,32 @@ fn steps_after_the_first_allocate_nothing() {
             }
         });
     }
+    // `evaluate` adds each run's sums (per filter 3·T numbers per step) as the run ends, in
+    // run order: what it holds at its peak does not grow with the number of runs (it held
+    // every run's sums, 96 KB each here, until the end).
+    let long = model_of(3, 4000, "0.8", "");
+    let inputs = sisfilt::inputs::RunInputs::of_model(&long).unwrap();
+    let peak = |runs: usize| {
+        let opts = sisfilt::evaluate::EvaluateOptions {
+            runs,
+            seed: 1,
+            burn_in: 0,
+            max_lifted: 1000,
+            band: 2,
+            loading: None,
+            filters: vec![sisfilt::evaluate::Compared::Distributed],
+            smooth: false,
+            true_p: None,
+        };
+        peak_bytes_in(|| {
+            pool.install(|| {
+                sisfilt::evaluate::evaluate(&long, &inputs, "alloc.toml", opts, || Ok(())).unwrap();
+            });
+        })
+    };
+    let (few, many) = (peak(8), peak(200));
+    assert!(
+        many < few + (1 << 20),
+        "evaluate's peak: {few} bytes for 8 runs, {many} for 200"
+    );
 }

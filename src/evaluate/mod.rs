@@ -3,8 +3,8 @@
 //! linear estimator) and average NEES with its 95 % band are reported per filter.
 //!
 //! Run `r` (0-based) is simulated with seed `seed + r`. Runs execute in parallel (rayon), and
-//! their sums are merged in run order afterwards, so every figure except the clock readings
-//! is the same for any thread count.
+//! their sums are added in run order as they finish (memory holds the runs in flight, not
+//! every run's), so every figure except the clock readings is the same for any thread count.
 //!
 //! A study may be cut into shards ([`evaluate_part`]): each runs its block of runs, with the
 //! seeds the whole study gives them, and keeps the sums behind every figure ([`Part`]);
@@ -14,7 +14,6 @@
 use std::ops::Range;
 use std::time::Instant;
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 mod compared;
@@ -642,29 +641,28 @@ fn tally(
         };
         schedules.smoothers.push(schedule);
     }
-    let results: Vec<RunResult> = runs
-        .into_par_iter()
-        .map(|r| {
+    let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model, steps)).collect();
+    let mut times = [0.0; COMPARED];
+    in_run_order(
+        runs,
+        |r| {
             let res = run_filters(model, inputs, truth, opts, &active, &schedules, r);
             tick()?;
             res
-        })
-        .collect::<Result<_>>()?;
-
-    let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model, steps)).collect();
-    let mut times = [0.0; COMPARED];
-    for run in &results {
-        for (k, (res, time)) in run.iter().enumerate() {
-            times[k] += time;
-            match res {
-                Ok(scores) => sums[k].merge(scores),
-                Err(e) if active[k] && skipped[k].is_none() => {
-                    skipped[k] = Some(format!("failed: {e}"));
+        },
+        |run: RunResult| {
+            for (k, (res, time)) in run.into_iter().enumerate() {
+                times[k] += time;
+                match res {
+                    Ok(scores) => sums[k].merge(&scores),
+                    Err(e) if active[k] && skipped[k].is_none() => {
+                        skipped[k] = Some(format!("failed: {e}"));
+                    }
+                    Err(_) => {}
                 }
-                Err(_) => {}
             }
-        }
-    }
+        },
+    )?;
     let filters = Compared::all()
         .zip(sums)
         .filter(|(f, _)| selected[f.index()])
@@ -687,6 +685,66 @@ fn tally(
         filters,
         wall_time_s: start.elapsed().as_secs_f64(),
     })
+}
+
+/// Runs `run(r)` for every `r` in `runs` on the threads of rayon's pool, handing the runs out
+/// in order, and gives each result to `add` in run order as soon as the runs before it have
+/// been added: memory holds the runs in flight and the few that finished ahead of a slower
+/// one, not every run's result, and what `add` sees does not depend on the thread count. The
+/// first error stops the handing out; the runs in flight finish.
+fn in_run_order<T: Send>(
+    runs: Range<usize>,
+    run: impl Fn(usize) -> Result<T> + Sync,
+    add: impl FnMut(T) + Send,
+) -> Result<()> {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+    /// The next run to add, the results that came before their turn, the first error.
+    struct Ordered<T, F> {
+        next: usize,
+        early: std::collections::BTreeMap<usize, T>,
+        error: Option<Error>,
+        add: F,
+    }
+    let handed_out = AtomicUsize::new(runs.start);
+    let stopped = AtomicBool::new(false);
+    let ordered = Mutex::new(Ordered {
+        next: runs.start,
+        early: Default::default(),
+        error: None,
+        add,
+    });
+    rayon::scope(|scope| {
+        for _ in 0..rayon::current_num_threads() {
+            scope.spawn(|_| {
+                while !stopped.load(Ordering::Relaxed) {
+                    let r = handed_out.fetch_add(1, Ordering::Relaxed);
+                    if r >= runs.end {
+                        break;
+                    }
+                    let result = run(r);
+                    let mut guard = ordered.lock().expect("no run panicked while adding");
+                    let o = &mut *guard;
+                    match result {
+                        Ok(value) => {
+                            o.early.insert(r, value);
+                            while let Some(value) = o.early.remove(&o.next) {
+                                (o.add)(value);
+                                o.next += 1;
+                            }
+                        }
+                        Err(e) => {
+                            stopped.store(true, Ordering::Relaxed);
+                            o.error.get_or_insert(e);
+                        }
+                    }
+                }
+            });
+        }
+    });
+    let ordered = ordered.into_inner().expect("no run panicked while adding");
+    ordered.error.map_or(Ok(()), Err)
 }
 
 /// The figures of a study from the sums of all its runs.
