@@ -6,7 +6,7 @@
 
 use numpy::ndarray::{ArrayD, IxDyn};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyArithmeticError, PyRuntimeError, PyValueError};
+use pyo3::exceptions::{PyArithmeticError, PyMemoryError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PySlice};
 
@@ -15,6 +15,7 @@ use sisfilt::config::{ConfigSetting, ConfigSource};
 use sisfilt::filter::centralized::DEFAULT_MAX_LIFTED;
 use sisfilt::fit::{FitSpec, ParamGroup};
 use sisfilt::run::RunSpec;
+use sisfilt::smoother::{DEFAULT_MAX_MEMORY, human_bytes};
 
 /// A library error as the Python exception of its kind.
 fn py_err(e: sisfilt::Error) -> PyErr {
@@ -306,14 +307,16 @@ impl Model {
 /// Simulates the chain for `steps` steps (default: the config's) with `seed` (default: the
 /// config's): a dict of `x[T,N,n]`, `y[T,N,q]` (a lost measurement holds its noise, as the
 /// paper's model says; NaN where a subsystem has no sensor), `gamma[T,N]` (True where the
-/// measurement arrived) and `u[T,N,m]`.
+/// measurement arrived) and `u[T,N,m]`. Arrays above `max_memory` bytes in all are refused
+/// before anything is allocated.
 #[pyfunction]
-#[pyo3(signature = (model, seed = None, steps = None))]
+#[pyo3(signature = (model, seed = None, steps = None, *, max_memory = DEFAULT_MAX_MEMORY))]
 fn simulate<'py>(
     py: Python<'py>,
     model: &Model,
     seed: Option<u64>,
     steps: Option<usize>,
+    max_memory: u64,
 ) -> PyResult<Bound<'py, PyDict>> {
     let m = model.inner.clone();
     let steps = match steps {
@@ -321,10 +324,33 @@ fn simulate<'py>(
         Some(s) => s,
         None => m.horizon().map_err(py_err)?,
     };
+    let (big_n, d) = (m.subsystems, m.dims);
+    // x, y and u in float64, gamma in bool.
+    let need = steps as f64 * big_n as f64 * ((d.n + d.q + d.m) * 8 + 1) as f64;
+    if need > max_memory as f64 {
+        return Err(PyValueError::new_err(format!(
+            "steps = {steps}: the arrays of {steps} steps of {big_n} subsystems take {} ({need:.3e} bytes), above max_memory = {} ({max_memory} bytes); simulate fewer steps, or raise max_memory",
+            human_bytes(need as u64),
+            human_bytes(max_memory)
+        )));
+    }
+    // The room up front: what does not fit is a MemoryError, not an abort, and the arrays are
+    // not copied as they grow.
+    fn room<T>(values: Option<usize>) -> PyResult<Vec<T>> {
+        let mut v = Vec::new();
+        values
+            .ok_or_else(|| "capacity overflow".to_string())
+            .and_then(|len| v.try_reserve_exact(len).map_err(|e| e.to_string()))
+            .map_err(|e| PyMemoryError::new_err(format!("simulate: {e}")))?;
+        Ok(v)
+    }
+    let cells = steps.checked_mul(big_n);
+    let of = |width: usize| cells.and_then(|c| c.checked_mul(width));
+    let (mut x, mut y, mut gamma, mut u) =
+        (room(of(d.n))?, room(of(d.q))?, room(cells)?, room(of(d.m))?);
     let seed = seed.unwrap_or(m.seed);
     let (x, y, gamma, u) = without_gil(py, |interrupt| {
         let mut inputs = sisfilt::inputs::InputStream::open(&m, None)?;
-        let (mut x, mut y, mut gamma, mut u) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut y_t = vec![0.0; m.subsystems * m.dims.q];
         sisfilt::simulate::simulate(&m, steps, seed, &mut inputs, |s| {
             interrupt.check()?;
@@ -338,7 +364,6 @@ fn simulate<'py>(
         })?;
         Ok((x, y, gamma, u))
     })?;
-    let (big_n, d) = (m.subsystems, m.dims);
     let out = PyDict::new(py);
     out.set_item("x", array(py, x, &[steps, big_n, d.n])?)?;
     out.set_item("y", array(py, y, &[steps, big_n, d.q])?)?;

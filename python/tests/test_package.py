@@ -113,6 +113,18 @@ def test_simulate_equals_the_command_line(cli, tmp_path):
     assert sim["x"].shape == (30, 50, 2) and sim["gamma"].dtype == bool
 
 
+def test_simulate_refuses_arrays_above_max_memory_before_allocating():
+    """10¹² steps would be 10¹⁶ bytes: refused at once (it ran until the memory ran out);
+    the limit is the arrays' size, T·N·(8(n + q + m) + 1) bytes."""
+    model = sisfilt.Model.from_toml(config("heat_rod.toml"))
+    with pytest.raises(ValueError, match=r"steps = 1000000000000: .* above max_memory = 8\.0 GiB"):
+        sisfilt.simulate(model, steps=10**12)
+    # heat_rod: N = 50, n = 2, q = 1, m = 1: 50 · 33 = 1650 bytes a step.
+    sisfilt.simulate(model, steps=30, max_memory=30 * 1650)
+    with pytest.raises(ValueError, match="raise max_memory"):
+        sisfilt.simulate(model, steps=30, max_memory=30 * 1650 - 1)
+
+
 def test_fit_equals_the_command_lines_json(cli, platoon_run):
     d = platoon_run
     out = cli("fit", "--config", config("platoon.toml"), "--meas", "gaps.csv", "--inputs",

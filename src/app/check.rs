@@ -18,17 +18,21 @@ use super::print_line;
 /// `sisfilt check CONFIG`: the report on standard output, warnings on standard error.
 pub fn run(path: &Path, settings: &[ConfigSetting]) -> Result<()> {
     let model = Model::load(path, settings)?;
-    // Everything simulate reads: the inputs file too (all of it without `steps`).
-    let mut inputs = InputStream::open(&model, None)?;
-    let mut u = vec![0.0; model.subsystems * model.dims.m];
-    match model.steps {
-        Some(steps) => {
-            for t in 1..=steps {
-                inputs.next(t, &mut u)?;
+    // Everything simulate reads: the inputs file too (all of it without `steps`). Generated
+    // inputs hold nothing to check, so a `steps` far beyond any file costs nothing; a file's
+    // rows end at its size.
+    if InputStream::path(&model, None).is_some() {
+        let mut inputs = InputStream::open(&model, None)?;
+        let mut u = vec![0.0; model.subsystems * model.dims.m];
+        match model.steps {
+            Some(steps) => {
+                for t in 1..=steps {
+                    inputs.next(t, &mut u)?;
+                }
+                inputs.finish(steps)?;
             }
-            inputs.finish(steps)?;
+            None => inputs.read_to_end()?,
         }
-        None => inputs.read_to_end()?,
     }
     let figures = check(&model)?;
     // Print only once everything passed, so that a bad config prints nothing on stdout.

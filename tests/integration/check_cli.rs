@@ -701,3 +701,42 @@ fn estimate_warns_about_an_unstable_window() {
         }
     }
 }
+
+/// `check` visits the windows of parameters, not the steps: a horizon of 10¹² steps with
+/// generated inputs is checked at once (it walked every step's inputs, about half an hour;
+/// the time limit is only there to fail rather than hang).
+#[test]
+fn a_horizon_of_a_trillion_steps_is_checked_window_by_window() {
+    let shipped = std::fs::read_to_string(crate::common::shipped_config("platoon.toml")).unwrap();
+    let text: String = shipped
+        .lines()
+        .map(|line| {
+            if line.starts_with("steps =") {
+                "steps = 1000000000000"
+            } else {
+                line
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    assert!(text.contains("kind = \"sine\""), "generated inputs");
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_file(dir.path(), "long.toml", &text);
+    let out = sisfilt()
+        .arg("check")
+        .arg(&path)
+        .timeout(std::time::Duration::from_secs(120))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("T = 1000000000000 steps"), "{stdout}");
+    assert!(
+        stdout.contains("t = 1..1000000000000: interconnection"),
+        "{stdout}"
+    );
+}
