@@ -307,7 +307,8 @@ impl std::str::FromStr for ConfigSetting {
                 value: value.trim().to_string(),
             }),
             _ => Err(format!(
-                "expected KEY=VALUE with a config key by its dotted path, e.g. dropout.p=0.7, found `{text}`"
+                "expected KEY=VALUE with a config key by its dotted path, e.g. dropout.p=0.7, found `{}`",
+                crate::messages::excerpt(text)
             )),
         }
     }
@@ -330,7 +331,7 @@ impl ConfigSetting {
     /// The value as TOML; a bare word that is not TOML (`sine`) is a string.
     fn toml_value(&self) -> std::result::Result<toml::Value, String> {
         let parsed = toml::from_str::<toml::Table>(&format!("value = {}", self.value))
-            .map_err(|e| e.message().trim().replace('\n', " "))
+            .map_err(|e| crate::messages::parser_message(e.message()))
             .and_then(|mut t| t.remove("value").ok_or_else(|| "no value".to_string()));
         match parsed {
             Ok(v) => Ok(v),
@@ -486,7 +487,7 @@ impl ConfigSource {
                 }
                 _ => line,
             };
-            let msg = e.message().trim().replace('\n', " ");
+            let msg = crate::messages::parser_message(e.message());
             Error::ConfigSyntax {
                 file: name.to_string(),
                 line,
@@ -527,7 +528,7 @@ impl ConfigSource {
         let mut table: toml::Table = toml::from_str(&self.text).map_err(|e| Error::Config {
             file: self.name.clone(),
             key: "config".into(),
-            msg: e.message().trim().replace('\n', " "),
+            msg: crate::messages::parser_message(e.message()),
         })?;
         for setting in settings {
             let refused = |msg: String| Error::Config {
@@ -539,7 +540,7 @@ impl ConfigSource {
             // Read back after each, so that a value of the wrong type names its own key.
             self.raw = serde_path_to_error::deserialize(table.clone()).map_err(
                 |e: serde_path_to_error::Error<toml::de::Error>| {
-                    refused(e.inner().message().trim().replace('\n', " "))
+                    refused(crate::messages::parser_message(e.inner().message()))
                 },
             )?;
             self.settings.push(setting.clone());

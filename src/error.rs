@@ -154,7 +154,10 @@ impl Error {
         Error::Json {
             file: file.into(),
             line: e.line(),
-            msg: format!("not {expected}: {e}"),
+            msg: format!(
+                "not {expected}: {}",
+                crate::messages::parser_message(&e.to_string())
+            ),
         }
     }
 

@@ -91,7 +91,12 @@ pub struct MergeArgs {
 
 /// `K/M` with `K < M`.
 fn parse_shard(text: &str) -> std::result::Result<Shard, String> {
-    let expected = || format!("expected K/M with 0 ≤ K < M (e.g. 3/64), found `{text}`");
+    let expected = || {
+        format!(
+            "expected K/M with 0 ≤ K < M (e.g. 3/64), found `{}`",
+            sisfilt::messages::excerpt(text)
+        )
+    };
     let (k, m) = text.split_once('/').ok_or_else(expected)?;
     let (k, m) = (k.trim().parse(), m.trim().parse());
     let (Ok(k), Ok(m)) = (k, m) else {

@@ -5,6 +5,7 @@
 use std::io::Read;
 
 use crate::error::{Error, Result};
+use crate::messages::{excerpt, line_excerpt};
 
 /// What a file's columns must be: `t,i,{prefix}1..{prefix}width` and then `extra` columns.
 #[derive(Debug, Clone)]
@@ -206,7 +207,7 @@ impl<R: Read> StepReader<R> {
                 1,
                 format!(
                     "expected the header `{expected}`, found `{}`{}",
-                    found.join(",").escape_debug(),
+                    line_excerpt(&found.join(",")),
                     header_hint(&found, &this.header)
                 ),
             ));
@@ -316,9 +317,10 @@ impl<R: Read> StepReader<R> {
                         format!(
                             "column `{}`: expected 0 (lost) or 1 (received), found `{}`",
                             self.column_name(col),
-                            String::from_utf8_lossy(self.record.get(col).unwrap_or_default())
-                                .trim()
-                                .escape_debug()
+                            excerpt(
+                                String::from_utf8_lossy(self.record.get(col).unwrap_or_default())
+                                    .trim()
+                            )
                         ),
                     ));
                 }
@@ -340,7 +342,7 @@ impl<R: Read> StepReader<R> {
                 format!(
                     "column `{}`: expected a positive integer, found `{}`",
                     self.column_name(col),
-                    String::from_utf8_lossy(field).escape_debug()
+                    excerpt(&String::from_utf8_lossy(field))
                 ),
             )
         })
@@ -354,7 +356,7 @@ impl<R: Read> StepReader<R> {
                 format!(
                     "column `{}`: expected a finite number, found `{}` (not UTF-8)",
                     self.column_name(col),
-                    String::from_utf8_lossy(field).escape_debug()
+                    excerpt(&String::from_utf8_lossy(field))
                 ),
             ));
         };
@@ -376,7 +378,7 @@ impl<R: Read> StepReader<R> {
                 format!(
                     "column `{}`: expected a finite number, found `{}`",
                     self.column_name(col),
-                    String::from_utf8_lossy(field).escape_debug()
+                    excerpt(&String::from_utf8_lossy(field))
                 ),
             )),
         }

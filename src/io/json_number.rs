@@ -31,7 +31,8 @@ impl Repr {
             Repr::Text(s) => match s.as_str() {
                 "inf" | "-inf" | "NaN" => Ok(s.parse().expect("Rust reads what it writes")),
                 _ => Err(E::custom(format!(
-                    "expected a number, \"inf\", \"-inf\" or \"NaN\", found \"{s}\""
+                    "expected a number, \"inf\", \"-inf\" or \"NaN\", found \"{}\"",
+                    crate::messages::excerpt(&s)
                 ))),
             },
         }

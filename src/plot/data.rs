@@ -223,7 +223,7 @@ impl EstimatesFile {
                 line: 1,
                 msg: format!(
                     "expected the columns of an estimates file `t,i,x1..xn,P1_1,P1_2..Pn_n` (docs/theory.md §13), found `{}`",
-                    found.join(",").escape_debug()
+                    crate::messages::line_excerpt(&found.join(","))
                 ),
             })
         };

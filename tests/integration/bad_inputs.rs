@@ -644,3 +644,103 @@ fn outputs_that_are_symbolic_links_are_written_through() {
         }
     }
 }
+
+/// A cell, a header, a config value or a JSON value of 10 MB is quoted by an excerpt (its first
+/// characters and its length) in a short error line, not whole: each case exits 2 with one
+/// line of at most 400 bytes that still names the file and the line or key (a `--set` value
+/// of 100 KB, the most an argument holds).
+#[test]
+fn a_huge_cell_or_value_is_quoted_by_an_excerpt() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let big = "9".repeat(10_000_000);
+    let config = crate::common::shipped_config("platoon.toml");
+    let shipped = std::fs::read_to_string(&config).unwrap();
+    sisfilt()
+        .args(["-q", "simulate"])
+        .arg(&config)
+        .args(["--steps", "3", "--out"])
+        .arg(d.join("run"))
+        .assert()
+        .success();
+    let rows = std::fs::read_to_string(d.join("run/measurements.csv")).unwrap();
+    let mut lines: Vec<String> = rows.lines().map(str::to_string).collect();
+    let mut cells: Vec<String> = lines[3].split(',').map(str::to_string).collect();
+    cells[2] = format!("x{big}");
+    lines[3] = cells.join(",");
+    let write = |name: &str, text: &str| crate::common::write_file(d, name, text);
+    write("cell.csv", &(lines.join("\n") + "\n"));
+    write("header.csv", &format!("t,i,y{big}\n1,1,0.5\n"));
+    write(
+        "variant.toml",
+        &shipped.replace("kind = \"sine\"", &format!("kind = \"s{big}\"")),
+    );
+    write("part.json", &format!("{{\"shard\": \"{big}\"}}"));
+    // An argument holds at most 128 KiB.
+    let long_setting = format!("input.kind=q{}", &big[..100_000]);
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec![
+                "estimate".into(),
+                "--config".into(),
+                config.display().to_string(),
+                "--meas".into(),
+                "cell.csv".into(),
+            ],
+            "cell.csv: line 4: column `y",
+        ),
+        (
+            vec![
+                "estimate".into(),
+                "--config".into(),
+                config.display().to_string(),
+                "--meas".into(),
+                "header.csv".into(),
+            ],
+            "header.csv: line 1: expected the header",
+        ),
+        (
+            vec!["check".into(), "variant.toml".into()],
+            "variant.toml: line",
+        ),
+        (
+            vec![
+                "check".into(),
+                config.display().to_string(),
+                "--set".into(),
+                long_setting,
+            ],
+            "input.kind (from --set): unknown variant",
+        ),
+        (
+            vec!["evaluate-merge".into(), "part.json".into()],
+            "part.json: line 1",
+        ),
+    ];
+    for (args, fragment) in cases {
+        let out = sisfilt()
+            .current_dir(d)
+            .arg("-q")
+            .args(&args)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "{fragment}: {}",
+            &stderr[..stderr.len().min(500)]
+        );
+        assert!(
+            stderr.len() <= 400,
+            "{fragment}: {} bytes: {}",
+            stderr.len(),
+            &stderr[..500]
+        );
+        assert_eq!(stderr.lines().count(), 1, "{stderr}");
+        assert!(
+            stderr.contains(fragment) && stderr.contains("bytes)"),
+            "{stderr}"
+        );
+    }
+}
