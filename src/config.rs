@@ -451,10 +451,10 @@ impl ConfigSource {
         if path.as_os_str() == "-" {
             let mut text = String::new();
             std::io::Read::read_to_string(&mut std::io::stdin().lock(), &mut text)
-                .map_err(|e| Error::io("<stdin>", e))?;
+                .map_err(|e| Error::read("<stdin>", e))?;
             return Self::from_text("<stdin>", PathBuf::from("."), text);
         }
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = std::fs::read_to_string(path).map_err(|e| Error::read(path, e))?;
         let dir = folder_of(path).to_path_buf();
         Self::from_text(&path.display().to_string(), dir, text)
     }

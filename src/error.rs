@@ -86,6 +86,12 @@ pub enum Error {
     #[error("{}: {err}", path.display())]
     Io { path: PathBuf, err: std::io::Error },
 
+    /// An input the user named cannot be opened or read, whatever the system's reason (it is
+    /// missing, a folder, a socket, a loop of links, a name too long): bad input, unless the
+    /// machine itself failed (out of memory, interrupted).
+    #[error("{}: {err}", path.display())]
+    Read { path: PathBuf, err: std::io::Error },
+
     /// The numerics broke down on a valid config (e.g. an innovation covariance that is not
     /// positive definite).
     #[error("t = {t}, i = {i}: {msg}")]
@@ -106,6 +112,10 @@ impl Error {
         match self {
             Error::Numerical { .. } => 1,
             Error::InRun { error, .. } => error.exit_code(),
+            Error::Read { err, .. } => match err.kind() {
+                std::io::ErrorKind::OutOfMemory | std::io::ErrorKind::Interrupted => 1,
+                _ => 2,
+            },
             Error::Io { err: source, .. } if source.kind() != std::io::ErrorKind::NotFound => {
                 if matches!(
                     source.kind(),
@@ -158,6 +168,14 @@ impl Error {
                 "not {expected}: {}",
                 crate::messages::parser_message(&e.to_string())
             ),
+        }
+    }
+
+    /// A failed open or read of the input `path` the user named ([`Error::Read`]).
+    pub fn read(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Read {
+            path: path.into(),
+            err: source,
         }
     }
 

@@ -126,7 +126,7 @@ pub fn open_csv(
     let source: Box<dyn Read + Send> = if path.as_os_str() == "-" {
         Box::new(std::io::stdin())
     } else {
-        Box::new(File::open(path).map_err(|e| Error::io(path, e))?)
+        Box::new(File::open(path).map_err(|e| Error::read(path, e))?)
     };
     let name = if path.as_os_str() == "-" {
         "<stdin>".to_string()

@@ -223,7 +223,7 @@ pub fn merge(args: &MergeArgs) -> Result<()> {
         .iter()
         .map(|path| {
             let name = path.display().to_string();
-            let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+            let text = std::fs::read_to_string(path).map_err(|e| Error::read(path, e))?;
             let part: Part = serde_json::from_str(&text).map_err(|e| {
                 Error::json(&name, "a part written by `sisfilt evaluate --shard`", &e)
             })?;

@@ -49,7 +49,7 @@ impl RunRecord {
         let text = match std::fs::read_to_string(&path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(Error::io(&path, e)),
+            Err(e) => return Err(Error::read(&path, e)),
         };
         serde_json::from_str(&text).map(Some).map_err(|e| {
             Error::json(

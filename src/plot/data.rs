@@ -45,7 +45,7 @@ fn is_stdin(path: &Path) -> bool {
 pub(crate) fn open(path: &Path) -> Result<Box<dyn Read>> {
     if !is_stdin(path) {
         return Ok(Box::new(BufReader::new(
-            File::open(path).map_err(|e| Error::io(path, e))?,
+            File::open(path).map_err(|e| Error::read(path, e))?,
         )));
     }
     static STDIN: OnceLock<Vec<u8>> = OnceLock::new();
@@ -56,7 +56,7 @@ pub(crate) fn open(path: &Path) -> Result<Box<dyn Read>> {
             std::io::stdin()
                 .lock()
                 .read_to_end(&mut bytes)
-                .map_err(|e| Error::io("<stdin>", e))?;
+                .map_err(|e| Error::read("<stdin>", e))?;
             STDIN.get_or_init(|| bytes)
         }
     };
@@ -75,7 +75,7 @@ fn is_json(path: &Path) -> Result<bool> {
     let mut input = open(path)?;
     while input
         .read(&mut first)
-        .map_err(|e| Error::io("<stdin>", e))?
+        .map_err(|e| Error::read("<stdin>", e))?
         == 1
     {
         if !first[0].is_ascii_whitespace() {

@@ -73,7 +73,7 @@ fn read(path: &Path) -> Result<EvaluationFile> {
     let mut text = String::new();
     super::data::open(path)?
         .read_to_string(&mut text)
-        .map_err(|e| Error::io(&name, e))?;
+        .map_err(|e| Error::read(&name, e))?;
     let not_eval = |what: String| Error::File {
         file: name.clone(),
         msg: format!("not the JSON of `sisfilt evaluate --out`: {what}"),

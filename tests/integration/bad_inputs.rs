@@ -744,3 +744,40 @@ fn a_huge_cell_or_value_is_quoted_by_an_excerpt() {
         );
     }
 }
+
+/// An input the operating system will not open — a loop of symbolic links, a name too long,
+/// a socket, a folder — is bad input (exit 2) naming it, in every command that reads one (a
+/// loop, a long name and a socket were internal failures, exit 1).
+#[test]
+fn an_input_the_system_will_not_open_is_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::os::unix::fs::symlink(d.join("loop-b"), d.join("loop-a")).unwrap();
+    std::os::unix::fs::symlink(d.join("loop-a"), d.join("loop-b")).unwrap();
+    let _socket = std::os::unix::net::UnixListener::bind(d.join("socket")).unwrap();
+    std::fs::create_dir(d.join("folder")).unwrap();
+    let long = "n".repeat(300);
+    let config = crate::common::shipped_config("paper.toml");
+    let config = config.to_str().unwrap();
+    for input in ["loop-a", long.as_str(), "socket", "folder"] {
+        let commands: [Vec<&str>; 4] = [
+            vec!["check", input],
+            vec!["estimate", "--config", config, "--meas", input],
+            vec!["plot", "evaluate", "--input", input, "--out", "figure.svg"],
+            vec!["evaluate-merge", input],
+        ];
+        for args in commands {
+            let out = sisfilt().current_dir(d).args(&args).output().unwrap();
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            let shown = &input[..input.len().min(20)];
+            assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+            assert!(out.stdout.is_empty(), "{args:?}");
+            assert_eq!(stderr.lines().count(), 1, "{args:?}: {stderr}");
+            assert!(
+                stderr.starts_with("error: ") && stderr.contains(shown),
+                "{args:?}: {stderr}"
+            );
+        }
+    }
+    assert!(!d.join("figure.svg").exists());
+}
