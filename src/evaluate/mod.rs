@@ -561,13 +561,14 @@ fn run_inputs(model: &Model, inputs: &RunInputs, steps: usize) -> Result<Vec<Vec
     Ok(u)
 }
 
-/// Runs `runs` of the study (checked options, `T = steps`) and adds up their sums in run
-/// order; `tick` is called once per finished run.
+/// Runs `runs` of the study (checked options, `T = steps`, the inputs `u` of every run, from
+/// [`run_inputs`]) and adds up their sums in run order; `tick` is called once per finished run.
 fn tally(
     model: &Model,
     inputs: &RunInputs,
     opts: &EvaluateOptions,
     steps: usize,
+    u: &[Vec<f64>],
     runs: Range<usize>,
     tick: impl Fn() -> Result<()> + Sync,
 ) -> Result<StudySums> {
@@ -607,7 +608,6 @@ fn tally(
     let active: Vec<bool> = skipped.iter().map(Option::is_none).collect();
     // The unknown-dropout covariance passes of the centralized and the joint filter do not
     // depend on the data (the inputs are the same in every run): compute them once.
-    let u = run_inputs(model, inputs, steps)?;
     // A smoother replays the means of its filter, so that filter's schedule is needed too.
     let needed = |filter: Compared| {
         Compared::all().any(|f| active[f.index()] && f.smooths().unwrap_or(f) == filter)
@@ -615,11 +615,11 @@ fn tally(
     let mut schedules = Schedules {
         centralized: (needed(Compared::Centralized)
             && CentralizedSchedule::bytes(model, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| CentralizedSchedule::new(model, &u, opts.max_lifted))
+            .then(|| CentralizedSchedule::new(model, u, opts.max_lifted))
             .transpose()?,
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| JointSchedule::new(model, joint_options(opts)?, &u))
+            .then(|| JointSchedule::new(model, joint_options(opts)?, u))
             .transpose()?,
         smoothers: Vec::new(),
     };
@@ -635,7 +635,7 @@ fn tally(
             && name.update() == Update::Linear
             && smoother_schedule_bytes(model, name, opts)? <= MAX_SCHEDULE_BYTES as f64
         {
-            SmootherSchedule::new(make_smoother(model, name, opts)?, model, &u).ok()
+            SmootherSchedule::new(make_smoother(model, name, opts)?, model, u).ok()
         } else {
             None
         };
@@ -831,7 +831,8 @@ pub fn evaluate(
 ) -> Result<Evaluation> {
     let start = Instant::now();
     let steps = checked_steps(model, &opts)?;
-    let mut sums = tally(model, inputs, &opts, steps, 0..opts.runs, tick)?;
+    let u = run_inputs(model, inputs, steps)?;
+    let mut sums = tally(model, inputs, &opts, steps, &u, 0..opts.runs, tick)?;
     sums.wall_time_s = start.elapsed().as_secs_f64();
     Ok(evaluation(config, model.subsystems, steps, opts, sums))
 }
@@ -990,20 +991,21 @@ pub fn evaluate_part(
         .into());
     }
     let runs = shard.runs(opts.runs);
+    let u = run_inputs(model, inputs, steps)?;
     let studies = match sweep {
-        None => vec![tally(model, inputs, &opts, steps, runs.clone(), &tick)?],
+        None => vec![tally(model, inputs, &opts, steps, &u, runs.clone(), &tick)?],
         Some(values) => values
             .iter()
             .map(|&p| {
                 let model = model.with_arrival_probability(p);
-                tally(&model, inputs, &opts, steps, runs.clone(), &tick)
+                tally(&model, inputs, &opts, steps, &u, runs.clone(), &tick)
             })
             .collect::<Result<_>>()?,
     };
     Ok(Part {
         sisfilt_version: env!("CARGO_PKG_VERSION").to_string(),
         config: config.to_string(),
-        model_sha256: model_digest(model, &run_inputs(model, inputs, steps)?),
+        model_sha256: model_digest(model, &u),
         options: opts,
         sweep_p: sweep.map(<[f64]>::to_vec),
         shard,
