@@ -88,8 +88,9 @@ pub struct EstimateArgs {
     /// Joint filter: relative size below which blocks of A_eff are dropped [default: 1e-9].
     #[arg(long, value_name = "TOL")]
     pub band_tol: Option<f64>,
-    /// Joint filter: diagonal loading ε of the prior band, P_ii += ε tr(P_ii)/n I
-    /// [default: 1e-9 when every Q is zero, else 0].
+    /// Joint filter: diagonal loading ε of the prior band, P_ii += ε max(tr(P_ii)/n, f) I with
+    /// a floor f far below any variance that matters (docs/theory.md §8) [default: 1e-9 when
+    /// every Q is zero or the initial cov is singular, else 0]
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
     /// Add the column `nis` (last): the normalised innovation squared of each measurement

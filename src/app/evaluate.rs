@@ -37,8 +37,9 @@ pub struct EvaluateArgs {
     /// The joint filter's covariance band K.
     #[arg(long, value_name = "K", default_value_t = sisfilt::filter::joint::DEFAULT_BAND)]
     pub band: usize,
-    /// The joint filters' diagonal loading ε of the prior band, P_ii += ε tr(P_ii)/n I
-    /// [default: 1e-9 when every Q is zero, else 0].
+    /// The joint filters' diagonal loading ε of the prior band, P_ii += ε max(tr(P_ii)/n, f) I
+    /// with a floor f far below any variance that matters (docs/theory.md §8) [default: 1e-9
+    /// when every Q is zero or the initial cov is singular, else 0]
     #[arg(long, value_name = "EPS")]
     pub loading: Option<f64>,
     /// Run only these filters (comma-separated; default: all): distributed,

@@ -200,6 +200,9 @@ fn realise(model: &Model, inputs: &RunInputs, seed: u64) -> Result<Realisation> 
     Ok(r)
 }
 
+/// How a filter's note starts when it broke down in some run (its row says "failed").
+pub(crate) const FAILED: &str = "failed: ";
+
 /// Largest simulated realisation `evaluate` keeps in memory (one per thread at a time): a
 /// `steps` far too large is refused rather than aborting the process on allocation.
 const MAX_REALISATION_BYTES: usize = 1 << 30;
@@ -349,7 +352,8 @@ impl Scores {
 }
 
 /// Per run and filter: the sums, or the error that stopped the filter, and the time.
-type RunResult = Vec<(Result<Scores, String>, f64)>;
+/// Per filter: `None` where it is not active, else its scores or its failure, and its time.
+type RunResult = Vec<(Option<Result<Scores>>, f64)>;
 
 /// Run `r`: one realisation of `truth` (the model, or with `--true-p` the model simulated
 /// with another `p`) and every active filter of `model` on it.
@@ -372,7 +376,7 @@ fn run_filters(
     for name in Compared::all() {
         let k = name.index();
         if !active[k] {
-            out.push((Err(String::new()), 0.0));
+            out.push((None, 0.0));
             continue;
         }
         let start = Instant::now();
@@ -459,10 +463,7 @@ fn run_filters(
             })
         })();
 
-        out.push((
-            result.map_err(|e| format!("{}", in_run(e))),
-            start.elapsed().as_secs_f64(),
-        ));
+        out.push((Some(result.map_err(in_run)), start.elapsed().as_secs_f64()));
     }
     Ok(out)
 }
@@ -609,18 +610,21 @@ fn tally(
     // The unknown-dropout covariance passes of the centralized and the joint filter do not
     // depend on the data (the inputs are the same in every run): compute them once.
     // A smoother replays the means of its filter, so that filter's schedule is needed too.
+    // A pass that breaks down is left to the runs, which report the error as that filter's
+    // failure (run, t, i) while the others complete.
     let needed = |filter: Compared| {
         Compared::all().any(|f| active[f.index()] && f.smooths().unwrap_or(f) == filter)
     };
+    let joint_opts = joint_options(opts)?;
     let mut schedules = Schedules {
         centralized: (needed(Compared::Centralized)
             && CentralizedSchedule::bytes(model, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| CentralizedSchedule::new(model, u, opts.max_lifted))
-            .transpose()?,
+            .then(|| CentralizedSchedule::new(model, u, opts.max_lifted).ok())
+            .flatten(),
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| JointSchedule::new(model, joint_options(opts)?, u))
-            .transpose()?,
+            .then(|| JointSchedule::new(model, joint_opts, u).ok())
+            .flatten(),
         smoothers: Vec::new(),
     };
     for name in Compared::all() {
@@ -643,6 +647,7 @@ fn tally(
     }
     let mut sums: Vec<Scores> = (0..COMPARED).map(|_| Scores::new(model, steps)).collect();
     let mut times = [0.0; COMPARED];
+    let mut first_failure = None;
     in_run_order(
         runs,
         |r| {
@@ -654,15 +659,22 @@ fn tally(
             for (k, (res, time)) in run.into_iter().enumerate() {
                 times[k] += time;
                 match res {
-                    Ok(scores) => sums[k].merge(&scores),
-                    Err(e) if active[k] && skipped[k].is_none() => {
-                        skipped[k] = Some(format!("failed: {e}"));
+                    Some(Ok(scores)) => sums[k].merge(&scores),
+                    Some(Err(e)) if skipped[k].is_none() => {
+                        skipped[k] = Some(format!("{FAILED}{e}"));
+                        first_failure.get_or_insert(e);
                     }
-                    Err(_) => {}
+                    _ => {}
                 }
             }
         },
     )?;
+    // A table of failures says less than the first of them.
+    if let Some(e) = first_failure
+        && (0..COMPARED).all(|k| !active[k] || skipped[k].is_some())
+    {
+        return Err(e);
+    }
     let filters = Compared::all()
         .zip(sums)
         .filter(|(f, _)| selected[f.index()])

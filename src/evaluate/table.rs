@@ -1,6 +1,6 @@
 //! The tables `evaluate` prints on standard output.
 
-use super::{Evaluation, FilterResult, Sweep};
+use super::{Evaluation, FAILED, FilterResult, Sweep};
 use crate::accuracy::{AccuracyReport, DetectionReport};
 use crate::choice::Choice;
 
@@ -165,7 +165,12 @@ impl Evaluation {
                     s += "\n";
                 }
                 (None, Some(why)) => {
-                    s += &format!("{:<w$} skipped (see note)\n", f.name);
+                    let what = if why.starts_with(FAILED) {
+                        "failed"
+                    } else {
+                        "skipped"
+                    };
+                    s += &format!("{:<w$} {what} (see note)\n", f.name);
                     notes.push(format!("{}: {why}", f.name));
                 }
                 (None, None) => {}

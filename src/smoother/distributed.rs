@@ -80,13 +80,25 @@ impl Rts {
         self.ap.gemm(1.0, a, &p, 0.0);
         self.t_mat.copy_from_slice(t_next);
         let t_mat = std::mem::replace(&mut self.t_mat, DMatrix::zeros(0, 0));
-        let Some(chol) = Cholesky::new(t_mat) else {
-            self.t_mat = DMatrix::zeros(n, n);
-            return false;
-        };
-        self.gain_tr.copy_from(&self.ap);
-        chol.solve_mut(&mut self.gain_tr);
-        self.t_mat = chol.unpack();
+        match Cholesky::new(t_mat) {
+            Some(chol) => {
+                self.gain_tr.copy_from(&self.ap);
+                chol.solve_mut(&mut self.gain_tr);
+                self.t_mat = chol.unpack();
+            }
+            None => {
+                // A singular T (a state known exactly, Q = 0): the gain with the
+                // Moore–Penrose inverse, which is the RTS gain there (docs/theory.md §9).
+                let t_mat = DMatrixView::from_slice(t_next, n, n).into_owned();
+                let scale = t_mat.amax();
+                let Ok(pinv) = t_mat.pseudo_inverse(scale * n as f64 * f64::EPSILON) else {
+                    self.t_mat = DMatrix::zeros(n, n);
+                    return false;
+                };
+                self.gain_tr.gemm(1.0, &pinv, &self.ap, 0.0);
+                self.t_mat = DMatrix::zeros(n, n);
+            }
+        }
         gain_tr.copy_from_slice(self.gain_tr.as_slice());
         // P(t|T) = P + C (P(t+1|T) − T) Cᵀ.
         for k in 0..n * n {

@@ -20,7 +20,7 @@
 use std::sync::Arc;
 
 use crate::error::{Error, Result};
-use crate::filter::joint::{band_error, load_diagonal};
+use crate::filter::joint::{Loading, band_error};
 use crate::filter::{ChainFilter, JointFilter, JointOptions};
 use crate::linalg::band::{
     BandCholesky, BandError, CompletionWorkspace, GenBand, SymBand, completion_precision,
@@ -190,9 +190,12 @@ impl JointSmoother {
         let mut ws = Backward::new(model, k);
         let precision_loading = if loading_as_noise {
             ws.mean = MeanPass::with_extra_noise(model, loading);
-            0.0
+            Loading {
+                eps: 0.0,
+                ..filter.loading_rule()
+            }
         } else {
-            loading
+            filter.loading_rule()
         };
         let mut gains = Vec::new();
         // The band of P(t|T) is written into a scratch band that then trades places with
@@ -437,11 +440,11 @@ impl Backward {
     fn smoothed_precision(
         &mut self,
         band: &SymBand,
-        loading: f64,
+        loading: Loading,
         out: &mut SymBand,
     ) -> std::result::Result<(), BandError> {
         self.loaded.copy_band_from(band);
-        load_diagonal(&mut self.loaded, loading);
+        loading.apply(&mut self.loaded);
         completion_precision(&self.loaded, band.width(), out, &mut self.completion).map(|_| ())
     }
 }

@@ -393,3 +393,76 @@ fn joint_smoother_reruns_are_counted_in_a_note() {
     assert!(rest.contains("smoothed with --loading"), "{note}");
     assert!(stderr.contains(note), "{stderr}");
 }
+
+/// The paper's chain with its initial state known exactly (`cov = 0`), written into `dir`.
+fn known_start(dir: &std::path::Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(shipped_config("paper.toml")).unwrap();
+    crate::common::write_file(
+        dir,
+        "known.toml",
+        &text.replace(
+            "cov = [[1.0, 0.0], [0.0, 1.0]]",
+            "cov = [[0.0, 0.0], [0.0, 0.0]]",
+        ),
+    )
+}
+
+/// A filter that breaks down is a failed row with its message (run, `t`, `i`) while the
+/// others complete: with `--loading 0` the joint filters cannot start from a zero initial
+/// covariance (exit 1 and no table before, from the covariance pass computed once for all
+/// runs); with the default loading every filter and smoother runs and is scored, and follows
+/// the known trajectory. (Not the centralized smoothers: on a zero `T(t+1)` their
+/// information-form fallback breaks down, docs/theory.md §9.)
+#[test]
+fn a_filter_that_breaks_down_is_a_failed_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = known_start(dir.path());
+    let out = dir.path().join("eval.json");
+    let filters = "distributed,distributed-paper,joint,centralized,centralized-known,naive,\
+        distributed-mixture,joint-mixture,centralized-mixture,distributed-smoother,\
+        joint-smoother,distributed-mixture-smoother,joint-mixture-smoother";
+    let run = |extra: &[&str]| {
+        let assert = sisfilt()
+            .arg("evaluate")
+            .arg(&config)
+            .args(["--filters", filters, "--runs", "2", "--out"])
+            .arg(&out)
+            .args(extra)
+            .assert()
+            .success();
+        let stdout = String::from_utf8_lossy(&assert.get_output().stdout).to_string();
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        (stdout, json)
+    };
+    let (table, json) = run(&["--loading", "0"]);
+    for row in json["filters"].as_array().unwrap() {
+        let name = row["name"].as_str().unwrap();
+        if name.starts_with("joint") {
+            let why = row["skipped"].as_str().expect(name);
+            assert!(
+                why.starts_with("failed: run 1, t = 1, i = 1: joint"),
+                "{name}: {why}"
+            );
+            assert!(
+                table.contains(&format!("{name:<28} failed (see note)")),
+                "{table}"
+            );
+        } else {
+            assert!(row["skipped"].is_null(), "{name}: {row}");
+            assert!(
+                row["accuracy"]["rmse_overall"].as_f64().unwrap() < 1e-12,
+                "{name}"
+            );
+        }
+    }
+    let (table, json) = run(&[]);
+    assert!(!table.contains("(see note)"), "{table}");
+    for row in json["filters"].as_array().unwrap() {
+        assert!(row["skipped"].is_null(), "{row}");
+        assert!(
+            row["accuracy"]["rmse_overall"].as_f64().unwrap() < 1e-6,
+            "{row}"
+        );
+    }
+}

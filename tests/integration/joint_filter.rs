@@ -3,7 +3,7 @@
 //! against the centralized filter of docs/theory.md §7 (a dense lifted Nahi/Kalman filter), in both
 //! dropout modes, on every shipped config and on small chains with overrides and inputs.
 
-use crate::common::{Sub, dense_a_eff, model_from, shipped_model, simulate_run};
+use crate::common::{Sub, dense_a_eff, model_from, shipped_model, simulate_run, simulate_steps};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment, Update,
 };
@@ -465,5 +465,157 @@ fn joint_filter_on_the_command_line() {
             line.contains("joint") || line.contains("distributed"),
             "{line}"
         );
+    }
+}
+
+/// The paper's chain (`Q = 0`) with `cov` as its initial covariance and `steps` steps.
+fn paper_with(cov: &str, steps: usize) -> Model {
+    let text = std::fs::read_to_string(crate::common::shipped_config("paper.toml")).unwrap();
+    model_from(
+        &text
+            .replace("cov = [[1.0, 0.0], [0.0, 1.0]]", &format!("cov = {cov}"))
+            .replace("steps = 150", &format!("steps = {steps}")),
+    )
+}
+
+/// Runs `filter` over `run`, the known-dropout mode losing what `γ` lost, and hands each
+/// step's `t`, `x̂(t|t)` and diagonal blocks of `P(t|t)` to `check`.
+fn follow(
+    filter: &mut dyn ChainFilter,
+    run: &crate::common::Run,
+    known: bool,
+    q: usize,
+    mut check: impl FnMut(usize, &[f64], &[f64]),
+) {
+    for (t, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
+        let y: Vec<f64> = y
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                if known && !run.gamma[t][k / q] {
+                    f64::NAN
+                } else {
+                    v
+                }
+            })
+            .collect();
+        filter
+            .step(&y, u)
+            .unwrap_or_else(|e| panic!("t = {}: {e}", t + 1));
+        let (x, p) = filter.filtered();
+        check(t + 1, x, p);
+    }
+}
+
+/// An initial state known exactly (`cov = 0`) with `Q = 0`: the true states are a
+/// deterministic trajectory from the known mean, and the joint filter must follow it (it
+/// stopped at `t = 1`: the zero prior has no precision, and the loading, proportional to the
+/// variance, added nothing). The loading's floor (docs/theory.md §8) costs estimates of the
+/// order `ε σ`: within 1e−6 of the truth at every step, with every variance below 1e−8, for
+/// either band, dropout mode and update.
+#[test]
+fn joint_filter_follows_a_state_known_exactly() {
+    let model = paper_with("[[0.0, 0.0], [0.0, 0.0]]", 150);
+    let run = simulate_run(&model, 3);
+    for (band, dropouts, update) in [
+        (2, Dropouts::Unknown, Update::Linear),
+        (5, Dropouts::Unknown, Update::Linear),
+        (2, Dropouts::Known, Update::Linear),
+        (2, Dropouts::Unknown, Update::Mixture),
+    ] {
+        let opts = JointOptions {
+            band,
+            dropouts,
+            update,
+            ..JointOptions::default()
+        };
+        let mut joint = JointFilter::new(&model, opts).unwrap();
+        follow(
+            &mut joint,
+            &run,
+            dropouts == Dropouts::Known,
+            1,
+            |t, x, p| {
+                for (a, b) in x.iter().zip(&run.x[t - 1]) {
+                    assert!((a - b).abs() < 1e-6, "{opts:?}, t = {t}: {a} against {b}");
+                }
+                assert!(p.iter().all(|v| v.abs() < 1e-8), "{opts:?}, t = {t}: {p:?}");
+            },
+        );
+    }
+}
+
+/// With `Q = 0` the covariance of a stable chain decays towards zero; over 3000 steps of the
+/// paper's chain it fell below what `f64` holds and the joint filter broke down at
+/// `t = 1559`. With the loading's floor it runs to the end and at full band stays within
+/// 1e−6 of the centralized filter (in covariance form, no loading) at every step.
+#[test]
+fn joint_filter_runs_a_q_zero_chain_for_thousands_of_steps() {
+    let model = paper_with("[[1.0, 0.0], [0.0, 1.0]]", 3000);
+    let run = simulate_run(&model, 3);
+    let mut joint = JointFilter::new(
+        &model,
+        JointOptions {
+            loading: None,
+            ..JointOptions::full_band(&model, SecondMoment::Band, Dropouts::Unknown)
+        },
+    )
+    .unwrap();
+    let mut cent = CentralizedFilter::new(&model, false, 1000).unwrap();
+    let mut central = Vec::new();
+    follow(&mut cent, &run, false, 1, |_, x, _| {
+        central.push(x.to_vec())
+    });
+    follow(&mut joint, &run, false, 1, |t, x, p| {
+        for (a, b) in x.iter().zip(&central[t - 1]) {
+            assert!((a - b).abs() < 1e-6, "t = {t}: {a} against {b}");
+        }
+        assert!(p.iter().all(|v| v.is_finite()), "t = {t}");
+    });
+}
+
+/// A singular initial covariance with `Q > 0` (the platoon's with one element known exactly):
+/// the default loading is then 1e−9 (it was 0, and the singular prior of `t = 1` stopped the
+/// filter), and at full band the joint filter stays within 1e−6 of the centralized filter.
+#[test]
+fn joint_filter_takes_a_singular_initial_covariance() {
+    let text = std::fs::read_to_string(crate::common::shipped_config("platoon.toml")).unwrap();
+    let model = model_from(&text.replace(
+        "cov = [[1.0, 0.0], [0.0, 0.25]]",
+        "cov = [[1.0, 0.0], [0.0, 0.0]]",
+    ));
+    assert!(!model.q_is_zero());
+    assert_eq!(JointOptions::default().loading_for(&model), 1e-9);
+    let run = simulate_steps(&model, 60, 5);
+    for dropouts in [Dropouts::Unknown, Dropouts::Known] {
+        let known = dropouts == Dropouts::Known;
+        let full = JointOptions {
+            loading: None,
+            ..JointOptions::full_band(&model, SecondMoment::Band, dropouts)
+        };
+        let mut cent = CentralizedFilter::new(&model, known, 1000).unwrap();
+        let mut central = Vec::new();
+        follow(&mut cent, &run, known, model.dims.q, |_, x, _| {
+            central.push(x.to_vec())
+        });
+        for opts in [
+            full,
+            JointOptions {
+                dropouts,
+                ..JointOptions::default()
+            },
+        ] {
+            let mut joint = JointFilter::new(&model, opts).unwrap();
+            follow(&mut joint, &run, known, model.dims.q, |t, x, _| {
+                if opts.band == full.band {
+                    for (a, b) in x.iter().zip(&central[t - 1]) {
+                        assert!(
+                            (a - b).abs() < 1e-6,
+                            "{dropouts:?}, t = {t}: {a} against {b}"
+                        );
+                    }
+                }
+            });
+        }
     }
 }

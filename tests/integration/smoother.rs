@@ -636,22 +636,25 @@ fn smoothing_on_the_command_line() {
 /// rank-one `A`: `T(t+1) = A_eff P(t|t) A_effᵀ` is singular, so the centralized RTS form
 /// cannot run and docs/theory.md §9's fallback must.
 fn singular_prediction() -> Model {
-    model_from(
-        &SMALL
-            .replace(
-                "Q = [[0.01, 0.0], [0.0, 0.02]]",
-                "Q = [[0.0, 0.0], [0.0, 0.0]]",
-            )
-            .replace("H = [[0.1], [0.0]]", "H = [[0.0], [0.0]]")
-            .replace(
-                "A = [[0.8, 0.2], [-0.1, 0.9]]",
-                "A = [[0.8, 0.4], [0.4, 0.2]]",
-            )
-            .replace(
-                "A = [[0.6, 0.3], [0.0, 0.9]]",
-                "A = [[0.6, 0.3], [0.4, 0.2]]",
-            ),
-    )
+    model_from(&singular_prediction_text())
+}
+
+/// The text of [`singular_prediction`].
+fn singular_prediction_text() -> String {
+    SMALL
+        .replace(
+            "Q = [[0.01, 0.0], [0.0, 0.02]]",
+            "Q = [[0.0, 0.0], [0.0, 0.0]]",
+        )
+        .replace("H = [[0.1], [0.0]]", "H = [[0.0], [0.0]]")
+        .replace(
+            "A = [[0.8, 0.2], [-0.1, 0.9]]",
+            "A = [[0.8, 0.4], [0.4, 0.2]]",
+        )
+        .replace(
+            "A = [[0.6, 0.3], [0.0, 0.9]]",
+            "A = [[0.6, 0.3], [0.4, 0.2]]",
+        )
 }
 
 /// A singular `T(t+1)`: the centralized smoother says so in a note and smooths by the
@@ -675,6 +678,45 @@ fn centralized_smoother_falls_back_on_a_singular_prediction() {
     );
     let (gx, gp) = gap(&smoothed, &batch);
     assert!(gx < 1e-6 && gp < 1e-6, "x {gx:e}, P {gp:e}");
+}
+
+/// The distributed smoother on a singular `T(t+1)` (one subsystem of [`singular_prediction`],
+/// where it is the optimal smoother since `v = 0`): the RTS gain with the Moore–Penrose
+/// inverse of docs/theory.md §9 matches the batch estimator, and so on a chain whose initial
+/// state is known exactly (`cov = 0`, `Q = 0`), where the prediction is zero and the smoothed
+/// estimates are the true states themselves.
+#[test]
+fn distributed_smoother_runs_on_a_singular_prediction() {
+    let model = model_from(
+        &singular_prediction_text()
+            .replace("subsystems = 3", "subsystems = 1")
+            .replace("[0.9, 0.5, 0.7]", "0.6")
+            .replace("subsystems = [2, 3]", "subsystems = [1, 1]"),
+    );
+    let run = simulate_run(&model, 7);
+    let batch = batch_estimate(&model, &run.y, &run.u, false);
+    let distributed = |model: &Model| {
+        Box::new(DistributedSmoother::new(
+            model,
+            two_step(model, TwoStepOptions::default()).unwrap(),
+        ))
+    };
+    let smoothed = smooth(distributed(&model), &run.y, &run.u);
+    let (gx, gp) = gap(&smoothed, &batch);
+    assert!(gx < 1e-9 && gp < 1e-9, "x {gx:e}, P {gp:e}");
+
+    let known = model_from(&singular_prediction_text().replace(
+        "cov = [[0.8, 0.1], [0.1, 0.4]]",
+        "cov = [[0.0, 0.0], [0.0, 0.0]]",
+    ));
+    let run = simulate_run(&known, 7);
+    let smoothed = smooth(distributed(&known), &run.y, &run.u);
+    for (t, (xs, x)) in smoothed.x.iter().zip(&run.x).enumerate() {
+        for (a, b) in xs.iter().zip(x) {
+            assert!((a - b).abs() < 1e-12, "t = {}: {a} against {b}", t + 1);
+        }
+    }
+    assert!(smoothed.p.iter().flatten().all(|v| v.abs() < 1e-12));
 }
 
 /// `evaluate` runs the covariance pass of the centralized and the joint smoother once

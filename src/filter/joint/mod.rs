@@ -40,7 +40,8 @@ use crate::run::spec::{Setting, SpecError, check_non_negative, check_update};
 pub const DEFAULT_BAND: usize = 2;
 /// Default `--band-tol`: relative size below which blocks of `A_eff` are dropped.
 pub const DEFAULT_BAND_TOL: f64 = 1e-9;
-/// Default `--loading` when every `Q` is zero (else 0): docs/theory.md §8 "Loading".
+/// Default `--loading` when every `Q` is zero or the initial covariance is singular (else 0):
+/// docs/theory.md §8 "Loading".
 pub const DEFAULT_LOADING_Q_ZERO: f64 = 1e-9;
 
 /// Options of the joint filter.
@@ -50,7 +51,7 @@ pub struct JointOptions {
     pub band: usize,
     /// Relative tolerance of the `A_eff` band (docs/theory.md §8 predict step 2).
     pub band_tol: f64,
-    /// Diagonal loading `ε`; `None` means 1e−9 when every `Q` is zero, else 0.
+    /// Diagonal loading `ε`; `None` means [`JointOptions::loading_for`]'s default.
     pub loading: Option<f64>,
     /// `band` (default), `lifted` or `local`.
     pub second_moment: SecondMoment,
@@ -86,13 +87,16 @@ impl JointOptions {
         }
     }
 
-    /// The loading `ε` in force for `model`.
+    /// The loading `ε` in force for `model`: the default is 1e−9 where the prior can be
+    /// singular (every `Q` zero, or an initial covariance that is not positive definite).
     pub fn loading_for(&self, model: &Model) -> f64 {
-        self.loading.unwrap_or(if model.q_is_zero() {
-            DEFAULT_LOADING_Q_ZERO
-        } else {
-            0.0
-        })
+        let singular_start = model.initial_cov.clone().cholesky().is_none();
+        self.loading
+            .unwrap_or(if model.q_is_zero() || singular_start {
+                DEFAULT_LOADING_Q_ZERO
+            } else {
+                0.0
+            })
     }
 
     /// Refuses options no model can use: a negative or non-finite `band_tol` or `loading`,
@@ -211,17 +215,61 @@ enum Moments {
     },
 }
 
-/// `P_ii += ε (tr P_ii / n) I` on every diagonal block (docs/theory.md §8 "Loading").
-pub(crate) fn load_diagonal(p: &mut SymBand, eps: f64) {
-    if eps == 0.0 {
-        return;
+/// How far below the variance one reading resolves the loading's floor lies.
+const FLOOR_SCALE: f64 = 1e-100;
+
+/// The diagonal loading of docs/theory.md §8 "Loading": `P_ii += ε max(tr P_ii / n, σ²) I` on
+/// every diagonal block, `σ²` the variance one reading resolves ([`Loading::floor_of`]), so
+/// that a block whose variance is zero (a state known exactly) or has decayed to nothing still
+/// gets a loading.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Loading {
+    pub eps: f64,
+    pub floor: f64,
+}
+
+impl Loading {
+    /// The loading `eps` on `model`.
+    pub fn new(model: &Model, eps: f64) -> Self {
+        Self {
+            eps,
+            floor: Self::floor_of(model),
+        }
     }
-    let n = p.bs();
-    for i in 0..p.nb() {
-        let b = p.block_mut(i, 0);
-        let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
-        for c in 0..n {
-            b[c * n + c] += eps * trace / n as f64;
+
+    /// `σ² = 10⁻¹⁰⁰ min tr M / tr(Jᵀ J)` over the parameter sets that measure anything: the
+    /// variance of a state element as one reading resolves it, scaled far below any variance
+    /// that matters and far above where products of two variances underflow (0 when nothing
+    /// is measured).
+    pub fn floor_of(model: &Model) -> f64 {
+        let floor = model
+            .param_sets()
+            .iter()
+            .filter_map(|p| {
+                let resolved = p.J.norm_squared();
+                (resolved > 0.0).then(|| p.M.trace() / resolved)
+            })
+            .fold(f64::INFINITY, f64::min);
+        if floor.is_finite() {
+            FLOOR_SCALE * floor
+        } else {
+            0.0
+        }
+    }
+
+    /// Loads every diagonal block of `p`.
+    pub fn apply(&self, p: &mut SymBand) {
+        if self.eps == 0.0 {
+            return;
+        }
+        let n = p.bs();
+        for i in 0..p.nb() {
+            let b = p.block_mut(i, 0);
+            let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
+            let added = self.eps * (trace / n as f64).max(self.floor);
+            for c in 0..n {
+                b[c * n + c] += added;
+            }
         }
     }
 }
@@ -260,7 +308,7 @@ pub struct JointFilter {
     model: Model,
     known: bool,
     k: usize,
-    loading: f64,
+    loading: Loading,
     /// The next time step to process.
     t: usize,
     solver: ChainSolver,
@@ -305,7 +353,7 @@ impl JointFilter {
         opts.check()?;
         let known = opts.dropouts == Dropouts::Known;
         let mixture = opts.update == Update::Mixture;
-        let loading = opts.loading_for(model);
+        let loading = Loading::new(model, opts.loading_for(model));
         let k = opts.band.min(big_n - 1);
         let solver = ChainSolver::new(model, 1)?;
         let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
@@ -398,6 +446,11 @@ impl JointFilter {
 
     /// The diagonal loading `ε` in force.
     pub fn loading(&self) -> f64 {
+        self.loading.eps
+    }
+
+    /// The loading in force with its floor.
+    pub(crate) fn loading_rule(&self) -> Loading {
         self.loading
     }
 
@@ -412,7 +465,7 @@ impl JointFilter {
     }
 
     fn band_error(&self, what: &str, e: BandError) -> Error {
-        band_error_at(self.t, self.loading, self.k, what, e)
+        band_error_at(self.t, self.loading.eps, self.k, what, e)
     }
 
     /// The information of every subsystem's measurement: `Φ_i` added to `lambda`'s diagonal
@@ -539,7 +592,7 @@ impl JointFilter {
                 completion_precision(cov, self.k, &mut self.lambda, &mut self.completion)
                     .map_err(|e| (e, "moment"))
                     .and_then(|_| chol.factor(&self.lambda).map_err(|e| (e, "moment")))
-                    .map_err(|(e, what)| band_error_at(t, self.loading, self.k, what, e))?;
+                    .map_err(|(e, what)| band_error_at(t, self.loading.eps, self.k, what, e))?;
                 chol.selected_inverse(completed);
                 sandwich(self.a_eff.band(), completed, cov, &mut self.sandwich);
                 add_process_noise(model, t, cov);
@@ -639,9 +692,9 @@ impl ChainFilter for JointFilter {
         let model = &self.model.clone();
         let (n, big_n, t) = (model.dims.n, model.subsystems, self.t);
         // Update (docs/theory.md §8 update steps 1–7).
-        load_diagonal(&mut self.p_pred, self.loading);
+        self.loading.apply(&mut self.p_pred);
         if let Moments::Band { cov, .. } = &mut self.moments {
-            load_diagonal(cov, self.loading);
+            self.loading.apply(cov);
         }
         let prior_log_det =
             completion_precision(&self.p_pred, self.k, &mut self.lambda, &mut self.completion)
