@@ -10,6 +10,7 @@ use crate::error::Result;
 use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
 use crate::interconnect::ChainSolver;
 use crate::lifted::{RadiusEffort, SpectralRadius, a_eff_band, spectral_radius};
+use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::{Dims, MATRIX_KEYS, Model};
 use crate::smoother::{SmootherKind, memory_bytes};
 
@@ -157,7 +158,7 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
 /// caller's to set).
 fn window_figures(model: &Model, t: usize, joint_band: usize) -> Result<WindowCheck> {
     let solver = ChainSolver::new(model, t)?;
-    let b = a_eff_band(model, t, &solver, DEFAULT_BAND_TOL).half_width();
+    let b = a_eff_band(model, t, &solver, DEFAULT_BAND_TOL, DEFAULT_MAX_MEMORY)?.half_width();
     Ok(WindowCheck {
         first: t,
         last: None,

@@ -97,6 +97,15 @@ pub enum Error {
     #[error("t = {t}, i = {i}: {msg}")]
     Numerical { t: usize, i: usize, msg: String },
 
+    /// An array the run would allocate is larger than `max_memory` allows ([`crate::memory`]):
+    /// bad input, since a setting asked for it.
+    #[error(
+        "{what} needs {} ({need} bytes), above max_memory {} ({limit} bytes); raise max_memory",
+        crate::memory::human_bytes(*need),
+        crate::memory::human_bytes(*limit)
+    )]
+    OverMemory { what: String, need: u64, limit: u64 },
+
     /// An error in run `run` (1-based) of a Monte Carlo study.
     #[error("run {run}, {error}")]
     InRun { run: usize, error: Box<Error> },

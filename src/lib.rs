@@ -36,7 +36,8 @@
 //! - [`smoother`]: the fixed-interval smoother of each filter (docs/theory.md §9).
 //! - [`accuracy`]: RMSE and NEES against a known truth; [`evaluate`]: the Monte Carlo comparison
 //!   of the filters.
-//! - [`io`]: CSV reader and writer, atomic output files, the estimates file, `run.json`.
+//! - [`io`]: CSV reader and writer, atomic output files, the estimates file, `run.json`;
+//!   [`memory`]: the limit every large array is checked against before it is allocated.
 //! - [`plot`]: SVG figures from those files.
 //! - [`choice`]: the named options (filter, solver, format…) a front end offers;
 //!   [`messages`]: the one format of standard error; [`error`]: typed errors and their exit codes.
@@ -64,6 +65,7 @@ pub mod interconnect;
 pub mod io;
 pub mod lifted;
 pub mod linalg;
+pub mod memory;
 pub mod messages;
 pub mod model;
 pub mod plot;

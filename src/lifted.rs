@@ -106,14 +106,27 @@ const FIRST_TRIAL_HALF_WIDTH: usize = 16;
 /// `b = max{|d| : ν_d > tol · max_d ν_d}`; when `b` reaches `b_m < N − 1` the blocks may not
 /// have decayed yet and `b_m` is doubled. With `tol = 0` the result is the exact `A_eff`
 /// whenever its band ends before `N − 1`, and always at `b_m = N − 1` (one probe per column).
-/// `solver` must be prepared for `t`.
-pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> GenBand {
+/// `solver` must be prepared for `t`. A trial band larger than `max_memory` is refused before
+/// it is allocated.
+pub fn a_eff_band(
+    model: &Model,
+    t: usize,
+    solver: &ChainSolver,
+    tol: f64,
+    max_memory: u64,
+) -> Result<GenBand> {
     let (n, big_n) = (model.dims.n, model.subsystems);
     let mut ws = LiftedWorkspace::default();
     let (mut probe, mut col) = (vec![0.0; big_n * n], vec![0.0; big_n * n]);
     let mut trial = FIRST_TRIAL_HALF_WIDTH.min(big_n - 1);
     loop {
         let period = 2 * trial + 1;
+        let need = 8.0 * (big_n * n * n) as f64 * period as f64;
+        crate::memory::check(need, max_memory, || {
+            format!(
+                "the band of A_eff at t = {t} (trial half-width {trial} of N = {big_n} subsystems)"
+            )
+        })?;
         let mut band = GenBand::zeros(big_n, n, trial);
         for r in 0..period.min(big_n) {
             for c in 0..n {
@@ -152,7 +165,7 @@ pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Ge
             continue;
         }
         if kept == trial {
-            return band;
+            return Ok(band);
         }
         let mut narrow = GenBand::zeros(big_n, n, kept);
         for i in 0..big_n {
@@ -160,7 +173,7 @@ pub fn a_eff_band(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Ge
                 narrow.block_mut(i, j).copy_from_slice(band.block(i, j));
             }
         }
-        return narrow;
+        return Ok(narrow);
     }
 }
 

@@ -2,7 +2,8 @@
 //! the filter runs its steps after the first ones (step 1 may size buffers, and a change of
 //! parameters between override windows may refactorise step 1's system), for each variant of
 //! the distributed filter, sequential and in parallel, and of the joint band-k filter, and
-//! while the CSV reader and the estimates writer stream their steps.
+//! while the CSV reader and the estimates writer stream their steps; and the memory bounds the
+//! filters are checked against before they are built hold what they allocate.
 //!
 //! One test function only: the counter is global, and test functions run in parallel.
 
@@ -420,15 +421,8 @@ fn steps_after_the_first_allocate_nothing() {
     let inputs = sisfilt::inputs::RunInputs::of_model(&long).unwrap();
     let peak = |runs: usize| {
         let opts = sisfilt::evaluate::EvaluateOptions {
-            runs,
-            seed: 1,
-            burn_in: 0,
-            max_lifted: 1000,
-            band: 2,
-            loading: None,
             filters: vec![sisfilt::evaluate::Compared::Distributed],
-            smooth: false,
-            true_p: None,
+            ..sisfilt::evaluate::EvaluateOptions::new(runs, 1)
         };
         peak_bytes_in(|| {
             pool.install(|| {
@@ -441,4 +435,67 @@ fn steps_after_the_first_allocate_nothing() {
         many < few + (1 << 20),
         "evaluate's peak: {few} bytes for 8 runs, {many} for 200"
     );
+    memory_bounds_hold();
+}
+
+/// The bounds that `max_memory` is checked against before a filter is built
+/// ([`JointFilter::bytes`], [`CentralizedFilter::bytes`]) hold what the filter allocates while it
+/// is built and runs three steps, measured, for every band, moment and update, and are not
+/// loose beyond 4×: a bound that is too small lets a size through to the allocator, one that is
+/// too large refuses what fits.
+fn memory_bounds_hold() {
+    use sisfilt::filter::CentralizedFilter;
+    let ratio = |peak: usize, bound: f64, what: &str| {
+        assert!(
+            bound >= peak as f64 && bound <= 4.0 * peak as f64,
+            "{what}: bound {bound} bytes against {peak} measured"
+        );
+    };
+    for big_n in [50, 200] {
+        let model = model(big_n, "0.8", "");
+        let y = vec![0.1; big_n];
+        let u = vec![0.1; big_n];
+        for (known, mixture) in [(false, false), (true, false), (false, true)] {
+            let peak = peak_bytes_in(|| {
+                let f = CentralizedFilter::new(&model, known, 1000).unwrap();
+                let mut f: Box<dyn ChainFilter> = if mixture {
+                    Box::new(f.with_mixture_update().unwrap())
+                } else {
+                    Box::new(f)
+                };
+                for _ in 0..3 {
+                    f.step(&y, &u).unwrap();
+                }
+            });
+            let what = format!("centralized, N = {big_n}, known {known}, mixture {mixture}");
+            ratio(peak, CentralizedFilter::bytes(&model), &what);
+        }
+        for band in [2, 10, big_n - 1] {
+            for (second_moment, dropouts, update) in [
+                (SecondMoment::Band, Dropouts::Unknown, Update::Linear),
+                (SecondMoment::Band, Dropouts::Known, Update::Linear),
+                (SecondMoment::Lifted, Dropouts::Unknown, Update::Linear),
+                (SecondMoment::Local, Dropouts::Unknown, Update::Linear),
+                (SecondMoment::Band, Dropouts::Unknown, Update::Mixture),
+            ] {
+                let opts = JointOptions {
+                    band,
+                    second_moment,
+                    dropouts,
+                    update,
+                    ..JointOptions::default()
+                };
+                let mut b = 0;
+                let peak = peak_bytes_in(|| {
+                    let mut f = JointFilter::new(&model, opts).unwrap();
+                    b = f.a_eff_half_width();
+                    for _ in 0..3 {
+                        f.step(&y, &u).unwrap();
+                    }
+                });
+                let what = format!("joint, N = {big_n}, {opts:?}");
+                ratio(peak, JointFilter::bytes(&model, &opts, b), &what);
+            }
+        }
+    }
 }

@@ -14,8 +14,8 @@ use sisfilt::choice::Choice;
 use sisfilt::config::{ConfigSetting, ConfigSource};
 use sisfilt::filter::centralized::DEFAULT_MAX_LIFTED;
 use sisfilt::fit::{FitSpec, ParamGroup};
+use sisfilt::memory::{DEFAULT_MAX_MEMORY, human_bytes};
 use sisfilt::run::RunSpec;
-use sisfilt::smoother::{DEFAULT_MAX_MEMORY, human_bytes};
 
 /// A library error as the Python exception of its kind.
 fn py_err(e: sisfilt::Error) -> PyErr {
@@ -643,7 +643,7 @@ impl Filter {
     #[pyo3(signature = (
         model, *, filter = "distributed", update = "linear", dropouts = "unknown", paper = false,
         solver = None, second_moment = None, interconnect_from = None, band = None,
-        band_tol = None, loading = None, max_lifted = DEFAULT_MAX_LIFTED
+        band_tol = None, loading = None, max_lifted = DEFAULT_MAX_LIFTED, max_memory = None
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -659,12 +659,14 @@ impl Filter {
         band_tol: Option<f64>,
         loading: Option<f64>,
         max_lifted: usize,
+        max_memory: Option<u64>,
     ) -> PyResult<Self> {
         let spec = RunSpec {
             band,
             band_tol,
             loading,
             max_lifted,
+            max_memory,
             ..named_spec(
                 filter,
                 update,
@@ -823,7 +825,7 @@ fn fit<'py>(
 #[pyo3(signature = (
     model, runs, *, seed = None, burn_in = 0, max_lifted = DEFAULT_MAX_LIFTED,
     band = sisfilt::filter::joint::DEFAULT_BAND, loading = None, filters = None, smooth = false,
-    sweep_p = None, true_p = None, shard = None
+    sweep_p = None, true_p = None, shard = None, max_memory = DEFAULT_MAX_MEMORY
 ))]
 #[allow(clippy::too_many_arguments)]
 fn evaluate<'py>(
@@ -840,6 +842,7 @@ fn evaluate<'py>(
     sweep_p: Option<Vec<f64>>,
     true_p: Option<f64>,
     shard: Option<(usize, usize)>,
+    max_memory: u64,
 ) -> PyResult<Bound<'py, PyAny>> {
     let shard = shard
         .map(|(index, count)| sisfilt::evaluate::Shard::new(index, count))
@@ -861,6 +864,7 @@ fn evaluate<'py>(
         filters,
         smooth,
         true_p,
+        max_memory,
     };
     // As the command line names it: the config, then its settings.
     let name = std::iter::once(model.source.name.clone())

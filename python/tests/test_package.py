@@ -125,6 +125,26 @@ def test_simulate_refuses_arrays_above_max_memory_before_allocating():
         sisfilt.simulate(model, steps=30, max_memory=30 * 1650 - 1)
 
 
+def test_filters_above_max_memory_raise_value_error_before_allocating():
+    """A raised max_lifted or a wide band on a long chain: the filter's arrays are weighed
+    against max_memory before they are allocated (the process aborted), in Filter, estimate
+    and evaluate (where the filter is skipped with a note)."""
+    text = open(config("paper.toml")).read().replace("subsystems = 6", "subsystems = 100000")
+    model = sisfilt.Model.from_toml_str(text)
+    with pytest.raises(ValueError, match=r"the joint filter \(band k = 99999.* above max_memory 8\.0 GiB"):
+        sisfilt.Filter(model, filter="joint", band=99999)
+    with pytest.raises(ValueError, match=r"the centralized filter \(lifted state of size N·n = 200000\)"):
+        sisfilt.Filter(model, filter="centralized", max_lifted=10**6)
+    platoon = sisfilt.Model.from_toml(config("platoon.toml"))
+    y = np.zeros((3, 20, 2))
+    with pytest.raises(ValueError, match="raise max_memory"):
+        sisfilt.estimate(platoon, y, filter="centralized", max_memory=200 * 1024)
+    study = sisfilt.evaluate(platoon, 1, filters=["centralized", "distributed"], max_memory=200 * 1024)
+    rows = {f["name"]: f for f in study["filters"]}
+    assert "above max_memory 200.0 KiB" in rows["centralized"]["skipped"]
+    assert rows["distributed"]["skipped"] is None
+
+
 def test_fit_equals_the_command_lines_json(cli, platoon_run):
     d = platoon_run
     out = cli("fit", "--config", config("platoon.toml"), "--meas", "gaps.csv", "--inputs",

@@ -9,9 +9,9 @@ use anyhow::Result;
 use sisfilt::check::{ModelCheck, WindowCheck, check, instability};
 use sisfilt::config::ConfigSetting;
 use sisfilt::inputs::InputStream;
+use sisfilt::memory::{DEFAULT_MAX_MEMORY, human_bytes};
 use sisfilt::messages::warn;
 use sisfilt::model::Model;
-use sisfilt::smoother::{DEFAULT_MAX_MEMORY, human_bytes};
 
 use super::print_line;
 

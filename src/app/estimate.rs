@@ -78,8 +78,9 @@ pub struct EstimateArgs {
     /// centralized, the information form for joint.
     #[arg(long, conflicts_with = "predicted")]
     pub smooth: bool,
-    /// Largest memory the smoother's stored forward pass may take: bytes, or with a K, M or G
-    /// suffix [default: 8G].
+    /// Largest memory the run may hold, checked before each large array is allocated (the
+    /// centralized filter's lifted matrices, the joint filter's bands, the smoother's stored
+    /// forward pass): bytes, or with a K, M or G suffix [default: 8G].
     #[arg(long, value_name = "BYTES", value_parser = parse_max_memory)]
     pub max_memory: Option<u64>,
     /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: 2].
@@ -107,8 +108,8 @@ pub struct EstimateArgs {
     pub set: SetArgs,
 }
 
-fn parse_max_memory(text: &str) -> Result<u64, String> {
-    sisfilt::smoother::parse_bytes(text)
+pub(super) fn parse_max_memory(text: &str) -> Result<u64, String> {
+    sisfilt::memory::parse_bytes(text)
 }
 
 impl EstimateArgs {

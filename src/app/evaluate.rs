@@ -34,6 +34,11 @@ pub struct EvaluateArgs {
     /// Largest lifted state size N·n for the centralized filters (skipped above it).
     #[arg(long, default_value_t = sisfilt::filter::centralized::DEFAULT_MAX_LIFTED)]
     pub max_lifted: usize,
+    /// Largest memory each filter may hold (the centralized filters' lifted matrices, the
+    /// joint filters' bands), checked before it is allocated; a filter above it is skipped
+    /// with a note: bytes, or with a K, M or G suffix [default: 8G].
+    #[arg(long, value_name = "BYTES", value_parser = super::estimate::parse_max_memory)]
+    pub max_memory: Option<u64>,
     /// The joint filter's covariance band K.
     #[arg(long, value_name = "K", default_value_t = sisfilt::filter::joint::DEFAULT_BAND)]
     pub band: usize,
@@ -126,6 +131,9 @@ pub fn run(args: &EvaluateArgs) -> Result<()> {
         filters: args.filters.clone(),
         smooth: args.smooth,
         true_p: args.true_p,
+        max_memory: args
+            .max_memory
+            .unwrap_or(sisfilt::memory::DEFAULT_MAX_MEMORY),
     };
     // The settings go with the name, which the JSON and the figures carry.
     let config_name = std::iter::once(args.config.display().to_string())

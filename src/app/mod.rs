@@ -30,9 +30,9 @@ use sisfilt::evaluate::EvaluateError;
 use sisfilt::fit::FitError;
 use sisfilt::inputs::InputStream;
 use sisfilt::io::{Output, Role};
+use sisfilt::memory::human_bytes;
 use sisfilt::model::Model;
 use sisfilt::run::{RunError, Setting, SpecError};
-use sisfilt::smoother::human_bytes;
 
 /// Distributed state estimation for chains of interconnected subsystems whose sensors drop
 /// measurements at random (two-step filter of Bai Li's paper, with the corrections of docs/theory.md §6).
@@ -176,13 +176,17 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
             format!("{} belongs to the joint filter; add --filter joint", flag(setting))
         }
         Error::Spec(SpecError::PaperMomentInJoint) => "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
-        Error::Spec(SpecError::MaxMemoryWithoutSmooth) => "--max-memory belongs to --smooth".into(),
         Error::Spec(SpecError::SmoothAndPredicted) => "--smooth and --predicted exclude each other".into(),
         Error::Spec(SpecError::NotFiniteNonNegative { setting, value }) => {
             format!("{} {value}: expected a finite number ≥ 0", flag(setting))
         }
         Error::Run(RunError::OverMaxMemory { t, need, limit }) => format!(
             "--smooth: the stored forward pass needs {} by t = {t} ({need} bytes), above --max-memory {} ({limit} bytes); raise --max-memory, or smooth a shorter file",
+            human_bytes(need),
+            human_bytes(limit)
+        ),
+        Error::OverMemory { what, need, limit } => format!(
+            "{what} needs {} ({need} bytes), above --max-memory {} ({limit} bytes); raise --max-memory",
             human_bytes(need),
             human_bytes(limit)
         ),

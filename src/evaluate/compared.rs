@@ -149,12 +149,14 @@ impl Compared {
 
     /// The run this row makes: the filter of `estimate` it is, with its update and dropout
     /// mode; a smoother's is the run of its filter with `smooth`. The joint rows take the
-    /// evaluation's band and loading, the centralized rows its `max_lifted`.
+    /// evaluation's band and loading, the centralized rows its `max_lifted`; every row its
+    /// `max_memory`.
     pub fn spec(self, opts: &EvaluateOptions) -> RunSpec {
         let mut spec = RunSpec {
             update: self.update(),
             smooth: self.is_smoother(),
             max_lifted: opts.max_lifted,
+            max_memory: Some(opts.max_memory),
             ..RunSpec::default()
         };
         match self.smooths().unwrap_or(self) {

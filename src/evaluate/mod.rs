@@ -24,12 +24,14 @@ pub use compared::Compared;
 
 use crate::accuracy::{Accuracy, AccuracyReport, Detection, DetectionReport};
 use crate::error::{Error, Result};
+use crate::filter::centralized::CentralizedLimits;
 use crate::filter::joint::{JointSchedule, ScheduledJoint};
 use crate::filter::{
     CentralizedSchedule, ChainFilter, JointFilter, JointOptions, ScheduledCentralized, Update,
     check_estimates,
 };
 use crate::inputs::RunInputs;
+use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
 use crate::simulate::simulate;
 use crate::smoother::{Smoother, SmootherSchedule};
@@ -112,9 +114,34 @@ pub struct EvaluateOptions {
     /// config's `p`: what a wrong `p` costs each filter.
     #[serde(default)]
     pub true_p: Option<f64>,
+    /// The memory each filter may hold ([`crate::memory`]); a filter above it is skipped with
+    /// a note.
+    #[serde(default = "default_max_memory")]
+    pub max_memory: u64,
+}
+
+fn default_max_memory() -> u64 {
+    DEFAULT_MAX_MEMORY
 }
 
 impl EvaluateOptions {
+    /// `runs` runs from `seed`, every other setting at its default: all filters, no smoothers,
+    /// no burn-in, the default `max_lifted`, band, loading and `max_memory`.
+    pub fn new(runs: usize, seed: u64) -> Self {
+        Self {
+            runs,
+            seed,
+            burn_in: 0,
+            max_lifted: crate::filter::centralized::DEFAULT_MAX_LIFTED,
+            band: crate::filter::joint::DEFAULT_BAND,
+            loading: None,
+            filters: Vec::new(),
+            smooth: false,
+            true_p: None,
+            max_memory: DEFAULT_MAX_MEMORY,
+        }
+    }
+
     /// `R runs (seeds s..s+R−1)`, for the tables' first line.
     pub(crate) fn runs_and_seeds(&self) -> String {
         let last = self.seed.wrapping_add(self.runs as u64 - 1);
@@ -619,7 +646,13 @@ fn tally(
     let mut schedules = Schedules {
         centralized: (needed(Compared::Centralized)
             && CentralizedSchedule::bytes(model, steps) <= MAX_SCHEDULE_BYTES)
-            .then(|| CentralizedSchedule::new(model, u, opts.max_lifted).ok())
+            .then(|| {
+                let limits = CentralizedLimits {
+                    max_lifted: opts.max_lifted,
+                    max_memory: opts.max_memory,
+                };
+                CentralizedSchedule::new(model, u, limits).ok()
+            })
             .flatten(),
         joint: (needed(Compared::Joint)
             && JointSchedule::bytes(model, opts.band, steps) <= MAX_SCHEDULE_BYTES)

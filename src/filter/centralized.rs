@@ -20,6 +20,23 @@ use crate::run::check_update;
 /// Default largest lifted state size `N·n` the centralized filter accepts.
 pub const DEFAULT_MAX_LIFTED: usize = 1000;
 
+/// The sizes the centralized filter may take: its lifted state `N·n` (its cost, `O((N n)³)` a
+/// step) and its memory. A bare `usize` is `max_lifted` with the default memory limit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CentralizedLimits {
+    pub max_lifted: usize,
+    pub max_memory: u64,
+}
+
+impl From<usize> for CentralizedLimits {
+    fn from(max_lifted: usize) -> Self {
+        Self {
+            max_lifted,
+            max_memory: crate::memory::DEFAULT_MAX_MEMORY,
+        }
+    }
+}
+
 /// The centralized filter's state.
 pub struct CentralizedFilter {
     model: Model,
@@ -47,8 +64,12 @@ pub struct CentralizedFilter {
 
 impl CentralizedFilter {
     /// Starts from `X̂(1) = [m0; …]`, `T(1) = blkdiag(P0)`. Refuses chains with
-    /// `N·n > max_lifted`.
-    pub fn new(model: &Model, known: bool, max_lifted: usize) -> Result<Self> {
+    /// `N·n > max_lifted`, and a filter whose [`Self::bytes`] exceed `max_memory`.
+    pub fn new(model: &Model, known: bool, limits: impl Into<CentralizedLimits>) -> Result<Self> {
+        let CentralizedLimits {
+            max_lifted,
+            max_memory,
+        } = limits.into();
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         let size = big_n * n;
@@ -57,6 +78,9 @@ impl CentralizedFilter {
                 "the centralized filter works on the lifted state of size N·n = {size}, above the limit {max_lifted} (it costs O((N·n)³) per step); raise --max-lifted to run it anyway"
             )));
         }
+        crate::memory::check(Self::bytes(model), max_memory, || {
+            format!("the centralized filter (lifted state of size N·n = {size})")
+        })?;
         let init = LiftedMoments::initial(model);
         let x_pred = init.mean.as_slice().to_vec();
         let t_pred = init.cov.as_slice().to_vec();
@@ -81,6 +105,15 @@ impl CentralizedFilter {
             mixture: None,
             log_likelihood: None,
         })
+    }
+
+    /// A bound on the bytes the filter holds (docs/theory.md §12 "Memory"): twenty lifted
+    /// `(N n)²` matrices (the lifted system, moments, covariances and their workspace) and the
+    /// mixture update's `𝒲` and `𝒥`; tests/allocation.rs holds it against the bytes measured.
+    pub fn bytes(model: &Model) -> f64 {
+        let size = (model.subsystems * model.dims.n) as f64;
+        let measured = (model.subsystems * model.dims.q) as f64;
+        8.0 * (20.0 * size * size + 2.0 * measured * measured + 2.0 * measured * size)
     }
 
     /// The same filter with the mixture update of docs/theory.md §10 in place of Nahi's: each
@@ -337,8 +370,12 @@ impl CentralizedSchedule {
     }
 
     /// Runs the covariance pass for the given inputs (`u[t]`, `N·m` values per step).
-    pub fn new(model: &Model, u: &[Vec<f64>], max_lifted: usize) -> Result<Self> {
-        let mut filter = CentralizedFilter::new(model, false, max_lifted)?;
+    pub fn new(
+        model: &Model,
+        u: &[Vec<f64>],
+        limits: impl Into<CentralizedLimits>,
+    ) -> Result<Self> {
+        let mut filter = CentralizedFilter::new(model, false, limits)?;
         let mut y = vec![0.0; model.subsystems * model.dims.q];
         let mut sched = Self {
             model: model.clone(),

@@ -21,8 +21,9 @@ use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
 use crate::lifted::{RadiusEffort, spectral_radius};
 use crate::linalg::band::SymBand;
+use crate::memory::human_bytes;
 use crate::model::Model;
-use crate::smoother::{Smoother, human_bytes, memory_bytes};
+use crate::smoother::{Smoother, memory_bytes};
 
 use score::Scores;
 pub use source::{

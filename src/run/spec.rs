@@ -3,17 +3,17 @@
 //! fills a `RunSpec`, calls [`RunSpec::check`] once, and builds filters and smoothers from the
 //! checked form; nothing downstream checks a setting again.
 
-use crate::filter::centralized::DEFAULT_MAX_LIFTED;
+use crate::filter::centralized::{CentralizedLimits, DEFAULT_MAX_LIFTED};
 use crate::filter::{
     CentralizedFilter, ChainFilter, Dropouts, FilterKind, InterconnectFrom, JointFilter,
     JointOptions, SecondMoment, TwoStepOptions, Update, two_step,
 };
 use crate::interconnect::SolverKind;
 use crate::io::estimates::{EstimateKind, EstimateOptions, EstimatesColumns, JointSettings};
+use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
 use crate::smoother::{
-    CentralizedSmoother, DEFAULT_MAX_MEMORY, DistributedSmoother, JointSmoother, Smoother,
-    SmootherKind,
+    CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherKind,
 };
 
 /// A setting of a [`RunSpec`] that a [`SpecError`] is about, by its field name.
@@ -56,9 +56,6 @@ pub enum SpecError {
         "second_moment = paper belongs to the distributed filter; the joint filter takes band, lifted or local"
     )]
     PaperMomentInJoint,
-    /// `max_memory` limits the smoother's stored forward pass.
-    #[error("max_memory belongs to smooth = true")]
-    MaxMemoryWithoutSmooth,
     /// A smoothed run writes `x̂(t|T)`, a predicted one `x̂(t+1|t)`: one or the other.
     #[error("smooth and predicted exclude each other")]
     SmoothAndPredicted,
@@ -114,7 +111,8 @@ pub struct RunSpec {
     pub predicted: bool,
     /// Largest lifted state `N·n` the centralized filter accepts.
     pub max_lifted: usize,
-    /// Largest memory (bytes) the smoother's stored forward pass may take.
+    /// Largest memory (bytes) the run may hold: the filter's arrays ([`crate::memory`]) and
+    /// the smoother's stored forward pass, each checked before it is allocated.
     pub max_memory: Option<u64>,
     /// The estimates gain the column `nis`, the normalised innovation squared of every
     /// `(t, i)` (docs/theory.md §14; the innovation check itself runs whatever).
@@ -159,12 +157,11 @@ impl RunSpec {
         two_step.dropouts = self.dropouts;
         two_step.update = self.update;
         let joint = self.joint_options()?;
-        let output = match (self.smooth, self.predicted, self.max_memory) {
-            (true, true, _) => return Err(SpecError::SmoothAndPredicted),
-            (true, false, _) => EstimateKind::Smoothed,
-            (false, _, Some(_)) => return Err(SpecError::MaxMemoryWithoutSmooth),
-            (false, true, None) => EstimateKind::Predicted,
-            (false, false, None) => EstimateKind::Filtered,
+        let output = match (self.smooth, self.predicted) {
+            (true, true) => return Err(SpecError::SmoothAndPredicted),
+            (true, false) => EstimateKind::Smoothed,
+            (false, true) => EstimateKind::Predicted,
+            (false, false) => EstimateKind::Filtered,
         };
         Ok(CheckedSpec {
             filter: self.filter,
@@ -209,6 +206,7 @@ impl RunSpec {
             second_moment,
             dropouts: self.dropouts,
             update: self.update,
+            max_memory: self.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
         };
         joint.check()?;
         Ok(Some(joint))
@@ -249,7 +247,8 @@ impl CheckedSpec {
         self.output
     }
 
-    /// The smoother stops once its stored forward pass would exceed this many bytes.
+    /// The filter refuses to start above this many bytes, and the smoother stops once its
+    /// stored forward pass would exceed them.
     pub fn max_memory(&self) -> u64 {
         self.max_memory
     }
@@ -265,6 +264,13 @@ impl CheckedSpec {
             (FilterKind::Joint, Some(j)) => SmootherKind::Joint(j.band),
             (FilterKind::Centralized, _) => SmootherKind::Centralized,
             _ => SmootherKind::Distributed,
+        }
+    }
+
+    fn centralized_limits(&self) -> CentralizedLimits {
+        CentralizedLimits {
+            max_lifted: self.max_lifted,
+            max_memory: self.max_memory,
         }
     }
 
@@ -293,7 +299,7 @@ impl CheckedSpec {
             (FilterKind::Joint, Some(j)) => Box::new(JointFilter::new(model, j)?),
             (FilterKind::Centralized, _) => {
                 let known = self.dropouts() == Dropouts::Known;
-                let filter = CentralizedFilter::new(model, known, self.max_lifted)?;
+                let filter = CentralizedFilter::new(model, known, self.centralized_limits())?;
                 match self.update() {
                     Update::Linear => Box::new(filter),
                     Update::Mixture => Box::new(filter.with_mixture_update()?),
@@ -309,7 +315,7 @@ impl CheckedSpec {
             (FilterKind::Joint, Some(j)) => Box::new(JointSmoother::new(model, j)?),
             (FilterKind::Centralized, _) => {
                 let known = self.dropouts() == Dropouts::Known;
-                let smoother = CentralizedSmoother::new(model, known, self.max_lifted)?;
+                let smoother = CentralizedSmoother::new(model, known, self.centralized_limits())?;
                 match self.update() {
                     Update::Linear => Box::new(smoother),
                     Update::Mixture => Box::new(smoother.with_mixture_update()?),
@@ -433,14 +439,6 @@ mod tests {
                 },
                 SpecError::PaperMomentInJoint,
                 "second_moment = paper belongs to the distributed filter; the joint filter takes band, lifted or local",
-            ),
-            (
-                RunSpec {
-                    max_memory: Some(1 << 20),
-                    ..RunSpec::default()
-                },
-                SpecError::MaxMemoryWithoutSmooth,
-                "max_memory belongs to smooth = true",
             ),
             (
                 RunSpec {

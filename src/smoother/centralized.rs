@@ -15,6 +15,7 @@
 use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
 
 use crate::error::Result;
+use crate::filter::centralized::CentralizedLimits;
 use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment, Update};
 use crate::model::Model;
 use crate::smoother::{
@@ -29,6 +30,7 @@ pub struct CentralizedSmoother {
     model: Model,
     known: bool,
     update: Update,
+    limits: CentralizedLimits,
     filter: CentralizedFilter,
     x_filt: Vec<DVector<f64>>,
     x_pred: Vec<DVector<f64>>,
@@ -41,12 +43,14 @@ pub struct CentralizedSmoother {
 }
 
 impl CentralizedSmoother {
-    pub fn new(model: &Model, known: bool, max_lifted: usize) -> Result<Self> {
+    pub fn new(model: &Model, known: bool, limits: impl Into<CentralizedLimits>) -> Result<Self> {
+        let limits = limits.into();
         Ok(Self {
             model: model.clone(),
             known,
             update: Update::Linear,
-            filter: CentralizedFilter::new(model, known, max_lifted)?,
+            limits,
+            filter: CentralizedFilter::new(model, known, limits)?,
             x_filt: Vec::new(),
             x_pred: Vec::new(),
             p_filt: Vec::new(),
@@ -178,6 +182,7 @@ impl CentralizedSmoother {
         };
         let opts = JointOptions {
             update: self.update,
+            max_memory: self.limits.max_memory,
             ..JointOptions::full_band(model, SecondMoment::Lifted, dropouts)
         };
         let mut joint: Box<dyn Smoother> =

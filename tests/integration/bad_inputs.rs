@@ -14,7 +14,7 @@
 //! ```
 //!
 //! The runner copies the folder (without `case.toml`) into a temporary folder, runs `sisfilt`
-//! there with `RUST_BACKTRACE=1`, and checks the exit code; that standard output is empty; that
+//! there with `RUST_BACKTRACE=1` under a 2 GiB cap on its address space, and checks the exit code; that standard output is empty; that
 //! standard error is exactly one line, starting with `error: `, holding every fragment and no
 //! panic or backtrace; and that the folder is byte-for-byte what it was: no output file and no
 //! temporary file was left, and every file that was there (inputs, a previous `out.csv`) keeps
@@ -32,6 +32,9 @@ use serde::Deserialize;
 
 /// At least this many cases (issue 7).
 const MIN_CASES: usize = 40;
+
+/// The address space every case runs in (`ulimit -v`, KiB): 2 GiB.
+const MEMORY_CAP_KIB: u64 = 2 << 20;
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -145,8 +148,13 @@ fn run_case(dir: &Path) -> Result<(), Vec<String>> {
     copy_case(dir, &work, true);
     let before = snapshot(&work);
 
-    let mut cmd = sisfilt();
+    // Under an address-space cap, so that a size the binary fails to refuse cannot take the
+    // machine down: it aborts, and the case fails.
+    let mut cmd = assert_cmd::Command::new("sh");
     cmd.current_dir(&work)
+        .arg("-c")
+        .arg(format!("ulimit -v {MEMORY_CAP_KIB} && exec \"$0\" \"$@\""))
+        .arg(assert_cmd::cargo::cargo_bin("sisfilt"))
         .args(&case.args)
         .env("RUST_BACKTRACE", "1")
         .timeout(Duration::from_secs(120));

@@ -466,3 +466,38 @@ fn a_filter_that_breaks_down_is_a_failed_row() {
         );
     }
 }
+
+/// A filter that would hold more than `--max-memory` is skipped with a note naming what it
+/// needs, before anything is allocated, while the others run: on the platoon (`N = 20`, `n = 2`,
+/// `q = 2`) the centralized filters' bound is `8 (20 (N n)² + 2 (N q)² + 2 (N q)(N n))` =
+/// 307200 bytes, above 200 KiB.
+#[test]
+fn a_filter_over_max_memory_is_skipped_with_a_note() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("eval.json");
+    sisfilt()
+        .arg("evaluate")
+        .arg(shipped_config("platoon.toml"))
+        .args(["--runs", "2", "--max-memory", "200K", "--out"])
+        .arg(&out)
+        .assert()
+        .success();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let (nn, nq) = (40.0_f64, 40.0_f64);
+    let bound = 8.0 * (20.0 * nn * nn + 2.0 * nq * nq + 2.0 * nq * nn);
+    for row in json["filters"].as_array().unwrap() {
+        let name = row["name"].as_str().unwrap();
+        if name.starts_with("centralized") {
+            let why = row["skipped"].as_str().expect(name);
+            assert!(
+                why.contains(&format!(
+                    "needs 300.0 KiB ({bound} bytes), above max_memory 200.0 KiB"
+                )),
+                "{name}: {why}"
+            );
+        } else if name != "distributed-paper" {
+            assert!(row["skipped"].is_null(), "{name}: {row}");
+        }
+    }
+}

@@ -88,7 +88,7 @@ fn a_eff_band_by_column_compression_equals_dense_a_eff() {
     for t in [1, 6, 10, 15, 19] {
         let solver = ChainSolver::new(&model, t).unwrap();
         let dense = dense_a_eff(1, 1, &subs_at(&model, t));
-        let band = a_eff_band(&model, t, &solver, 0.0);
+        let band = a_eff_band(&model, t, &solver, 0.0, u64::MAX).unwrap();
         let err = (band.to_dense() - &dense).amax();
         assert!(err < 1e-13 * dense.amax(), "t = {t}: error {err:e}");
     }
@@ -100,7 +100,7 @@ fn a_eff_band_by_column_compression_equals_dense_a_eff() {
     let solver = ChainSolver::new(&long, 1).unwrap();
     let dense = dense_a_eff(1, 1, &subs_at(&long, 1));
     let tol = 1e-9;
-    let band = a_eff_band(&long, 1, &solver, tol);
+    let band = a_eff_band(&long, 1, &solver, tol, u64::MAX).unwrap();
     let b = band.half_width();
     assert!(b < 59, "band did not narrow: b = {b}");
     let n = 2;
@@ -336,19 +336,12 @@ fn joint_filter_matches_the_optimum_in_monte_carlo() {
     for name in ["platoon.toml", "heat_rod.toml", "paper.toml"] {
         let model = shipped_model(name);
         let opts = EvaluateOptions {
-            runs: 300,
-            seed: 100,
-            burn_in: 0,
-            max_lifted: 1000,
-            band: 2,
-            loading: None,
             filters: vec![
                 Compared::Distributed,
                 Compared::Joint,
                 Compared::Centralized,
             ],
-            smooth: false,
-            true_p: None,
+            ..EvaluateOptions::new(300, 100)
         };
         let ev = evaluate(
             &model,

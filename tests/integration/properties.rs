@@ -346,6 +346,7 @@ fn joint_options() -> impl Strategy<Value = JointOptions> {
                 second_moment,
                 dropouts,
                 update,
+                ..JointOptions::default()
             },
         )
 }

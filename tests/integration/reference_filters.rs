@@ -351,20 +351,13 @@ fn lifted_second_moments_match_monte_carlo() {
 fn distributed_is_near_optimal_and_naive_is_worse_on_platoon() {
     let model = shipped_model("platoon.toml");
     let opts = EvaluateOptions {
-        runs: 100,
-        seed: 1,
-        burn_in: 0,
-        max_lifted: 1000,
-        band: 2,
-        loading: None,
         filters: vec![
             Compared::Distributed,
             Compared::Centralized,
             Compared::CentralizedKnown,
             Compared::Naive,
         ],
-        smooth: false,
-        true_p: None,
+        ..EvaluateOptions::new(100, 1)
     };
     let ev = evaluate(
         &model,
@@ -402,19 +395,13 @@ fn mixture_against_nahi(name: &str, steps: usize, runs: usize, true_p: Option<f6
     let mut model = shipped_model(name);
     model.steps = Some(steps);
     let opts = EvaluateOptions {
-        runs,
-        seed: 1,
-        burn_in: 0,
-        max_lifted: 1000,
-        band: 2,
-        loading: None,
         filters: vec![
             Compared::Centralized,
             Compared::JointMixture,
             Compared::CentralizedMixture,
         ],
-        smooth: false,
         true_p,
+        ..EvaluateOptions::new(runs, 1)
     };
     evaluate(
         &model,
@@ -981,15 +968,8 @@ fn the_anees_band_of_evaluate_holds_its_coverage() {
     let mut covered = 0;
     for e in 0..evaluations {
         let opts = EvaluateOptions {
-            runs,
-            seed: 1 + (e * runs) as u64,
-            burn_in: 0,
-            max_lifted: 1000,
-            band: 2,
-            loading: None,
             filters: vec![Compared::Centralized],
-            smooth: false,
-            true_p: None,
+            ..EvaluateOptions::new(runs, 1 + (e * runs) as u64)
         };
         let result = evaluate(&model, &inputs, "chain", opts, || Ok(())).unwrap();
         let acc = result.filters[0].accuracy.as_ref().unwrap();

@@ -33,6 +33,7 @@ use crate::linalg::band::{
     completion_precision, sandwich,
 };
 use crate::linalg::mat_vec_add;
+use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
 use crate::run::spec::{Setting, SpecError, check_non_negative, check_update};
 
@@ -58,6 +59,9 @@ pub struct JointOptions {
     pub dropouts: Dropouts,
     /// `mixture` (docs/theory.md §10) needs unknown dropouts and no second moment.
     pub update: Update,
+    /// The filter refuses to start when [`JointFilter::bytes`] exceed this many bytes.
+    #[serde(skip)]
+    pub max_memory: u64,
 }
 
 impl Default for JointOptions {
@@ -69,6 +73,7 @@ impl Default for JointOptions {
             second_moment: SecondMoment::Band,
             dropouts: Dropouts::Unknown,
             update: Update::Linear,
+            max_memory: DEFAULT_MAX_MEMORY,
         }
     }
 }
@@ -84,6 +89,7 @@ impl JointOptions {
             second_moment,
             dropouts,
             update: Update::Linear,
+            max_memory: DEFAULT_MAX_MEMORY,
         }
     }
 
@@ -136,17 +142,25 @@ pub struct AEffBand {
     built_from: Vec<f64>,
     window: usize,
     tol: f64,
+    max_memory: u64,
 }
 
 impl AEffBand {
     /// The band of `A_eff(t)`; `solver` must be prepared for `t`.
-    pub fn new(model: &Model, t: usize, solver: &ChainSolver, tol: f64) -> Self {
-        Self {
-            band: a_eff_band(model, t, solver, tol),
+    pub fn new(
+        model: &Model,
+        t: usize,
+        solver: &ChainSolver,
+        tol: f64,
+        max_memory: u64,
+    ) -> Result<Self> {
+        Ok(Self {
+            band: a_eff_band(model, t, solver, tol, max_memory)?,
             built_from: Self::coupling_params(model, t),
             window: model.window_index(t),
             tol,
-        }
+            max_memory,
+        })
     }
 
     fn coupling_params(model: &Model, t: usize) -> Vec<f64> {
@@ -163,19 +177,19 @@ impl AEffBand {
     }
 
     /// Makes the band valid for `t`; returns true when it was rebuilt.
-    pub fn prepare(&mut self, model: &Model, t: usize, solver: &ChainSolver) -> bool {
+    pub fn prepare(&mut self, model: &Model, t: usize, solver: &ChainSolver) -> Result<bool> {
         let window = model.window_index(t);
         if window == self.window {
-            return false;
+            return Ok(false);
         }
         self.window = window;
         let now = Self::coupling_params(model, t);
         if now == self.built_from {
-            return false;
+            return Ok(false);
         }
-        self.band = a_eff_band(model, t, solver, self.tol);
+        self.band = a_eff_band(model, t, solver, self.tol, self.max_memory)?;
         self.built_from = now;
-        true
+        Ok(true)
     }
 
     pub fn band(&self) -> &GenBand {
@@ -306,6 +320,7 @@ struct Mixture {
 /// The joint band-k filter's state between time steps.
 pub struct JointFilter {
     model: Model,
+    opts: JointOptions,
     known: bool,
     k: usize,
     loading: Loading,
@@ -356,7 +371,8 @@ impl JointFilter {
         let loading = Loading::new(model, opts.loading_for(model));
         let k = opts.band.min(big_n - 1);
         let solver = ChainSolver::new(model, 1)?;
-        let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol);
+        let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol, opts.max_memory)?;
+        Self::check_memory(model, &opts, a_eff.half_width())?;
         let w = (k + 2 * a_eff.half_width()).min(big_n - 1);
         let mean: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
         let moments = match (
@@ -393,6 +409,7 @@ impl JointFilter {
         diagonal_blocks(&p_pred, &mut block_pred);
         Ok(Self {
             model: model.clone(),
+            opts,
             known,
             k,
             loading,
@@ -426,6 +443,40 @@ impl JointFilter {
                 ru: vec![0.0; q],
                 ws: Box::new(nahi::Workspace::new(n, q)),
             }),
+        })
+    }
+
+    /// A bound on the bytes the filter holds with `A_eff`'s half-width `b` (docs/theory.md §12
+    /// "Memory"): `8 n²` per subsystem times `5(k+1) + 2(w+1) + 2(2b+1) + 24` (the bands, their
+    /// factor, `A_eff` and the vectors), `5(k+1) + 2(w+1)` more with the `band` moment, the
+    /// cliques' `6 (k+1)² n²`, and `8 (N n)²` more with the dense `lifted` moment. tests/allocation.rs
+    /// holds it against the bytes measured.
+    pub fn bytes(model: &Model, opts: &JointOptions, b: usize) -> f64 {
+        let (n, big_n) = (model.dims.n as f64, model.subsystems);
+        let k = opts.band.min(big_n - 1) as f64;
+        let w = (k + 2.0 * b as f64).min((big_n - 1) as f64);
+        let big_n = big_n as f64;
+        let mut per_subsystem =
+            5.0 * (k + 1.0) + 2.0 * (w + 1.0) + 2.0 * (2.0 * b as f64 + 1.0) + 24.0;
+        let reads_moment = reads_second_moment(opts.dropouts, opts.update);
+        if reads_moment && opts.second_moment == SecondMoment::Band {
+            per_subsystem += 5.0 * (k + 1.0) + 2.0 * (w + 1.0);
+        }
+        let mut values = n * n * (big_n * per_subsystem + 6.0 * (k + 1.0) * (k + 1.0));
+        if reads_moment && opts.second_moment == SecondMoment::Lifted {
+            values += 8.0 * (big_n * n) * (big_n * n);
+        }
+        8.0 * values
+    }
+
+    /// Refuses a filter whose [`Self::bytes`] exceed `opts.max_memory`.
+    fn check_memory(model: &Model, opts: &JointOptions, b: usize) -> Result<()> {
+        crate::memory::check(Self::bytes(model, opts, b), opts.max_memory, || {
+            format!(
+                "the joint filter (band k = {}, A_eff half-width b = {b}, N = {} subsystems)",
+                opts.band.min(model.subsystems - 1),
+                model.subsystems
+            )
         })
     }
 
@@ -719,8 +770,9 @@ impl ChainFilter for JointFilter {
         }
         // The A_eff of this step fixes the width w the prediction needs.
         self.solver.prepare(model, t)?;
-        if self.a_eff.prepare(model, t, &self.solver) || self.sandwich_stale() {
+        if self.a_eff.prepare(model, t, &self.solver)? || self.sandwich_stale() {
             let b = self.a_eff.half_width();
+            Self::check_memory(model, &self.opts, b)?;
             let w = (self.k + 2 * b).min(big_n - 1);
             self.sandwich = SandwichWorkspace::new(big_n, n, b, self.k);
             self.p_filt = SymBand::zeros(big_n, n, w);
