@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
-use crate::io::folder_of;
+use crate::io::{folder_of, read_text};
 
 /// A matrix as the TOML writes it: a list of rows, or a number for a `1 × 1` matrix.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -444,17 +444,27 @@ pub struct ConfigSource {
     pub raw: RawConfig,
 }
 
+/// The largest config read: a list of `p` or of any value per subsystem for the largest chain
+/// (10⁷ subsystems) fits many times over; a file of gigabytes (or `/dev/zero`) is refused
+/// before the parser holds it.
+pub const MAX_CONFIG_BYTES: u64 = 256 << 20;
+
 impl ConfigSource {
     /// Reads and parses a config file; `-` is standard input (its relative paths resolve
     /// against the working folder).
     pub fn from_file(path: &Path) -> Result<Self> {
         if path.as_os_str() == "-" {
-            let mut text = String::new();
-            std::io::Read::read_to_string(&mut std::io::stdin().lock(), &mut text)
-                .map_err(|e| Error::read("<stdin>", e))?;
+            let stdin = std::io::stdin().lock();
+            let text = read_text("<stdin>", stdin, MAX_CONFIG_BYTES, "config")?;
             return Self::from_text("<stdin>", PathBuf::from("."), text);
         }
-        let text = std::fs::read_to_string(path).map_err(|e| Error::read(path, e))?;
+        let file = std::fs::File::open(path).map_err(|e| Error::read(path, e))?;
+        let text = read_text(
+            &path.display().to_string(),
+            file,
+            MAX_CONFIG_BYTES,
+            "config",
+        )?;
         let dir = folder_of(path).to_path_buf();
         Self::from_text(&path.display().to_string(), dir, text)
     }

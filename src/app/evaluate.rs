@@ -7,6 +7,7 @@ use anyhow::{Context, Result};
 
 use sisfilt::error::Error;
 use sisfilt::evaluate::{Compared, Part, Shard, Study};
+use sisfilt::io::{MAX_DOCUMENT_BYTES, read_text};
 use sisfilt::io::{Output, Role, check_files};
 use sisfilt::messages::{Verbosity, info, verbosity, warn};
 use sisfilt::model::Model;
@@ -232,7 +233,8 @@ pub fn merge(args: &MergeArgs) -> Result<()> {
         .iter()
         .map(|path| {
             let name = path.display().to_string();
-            let text = std::fs::read_to_string(path).map_err(|e| Error::read(path, e))?;
+            let file = std::fs::File::open(path).map_err(|e| Error::read(path, e))?;
+            let text = read_text(&name, file, MAX_DOCUMENT_BYTES, "part")?;
             let part: Part = serde_json::from_str(&text).map_err(|e| {
                 Error::json(&name, "a part written by `sisfilt evaluate --shard`", &e)
             })?;

@@ -7,6 +7,69 @@ use std::io::Read;
 use crate::error::{Error, Result};
 use crate::messages::{excerpt, line_excerpt};
 
+/// The longest line a CSV file may have: far beyond any row of the files of docs/theory.md
+/// §13 (an estimates row of the joint filter with a band of a thousand holds a few hundred
+/// KB), and a bound on what a line without end (`/dev/zero`) makes the reader hold.
+pub const MAX_LINE_BYTES: usize = 16 << 20;
+
+/// A reader that fails once a line grows past [`MAX_LINE_BYTES`], before the CSV parser has
+/// buffered it whole.
+pub struct LineLimit<R> {
+    inner: R,
+    /// Bytes since the last line break.
+    since_break: usize,
+}
+
+/// The error [`LineLimit`] returns, found again by [`StepReader`] to name the line.
+#[derive(Debug)]
+struct LineTooLong;
+
+impl std::fmt::Display for LineTooLong {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "a line longer than {} (the longest a file may have)",
+            crate::memory::human_bytes(MAX_LINE_BYTES as u64)
+        )
+    }
+}
+
+impl std::error::Error for LineTooLong {}
+
+impl<R> LineLimit<R> {
+    pub fn new(inner: R) -> Self {
+        Self {
+            inner,
+            since_break: 0,
+        }
+    }
+}
+
+impl<R: Read> Read for LineLimit<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        let chunk = &buf[..n];
+        // Both searches stop at the first line break they meet: cheap for short lines.
+        match chunk.iter().position(|&b| b == b'\n') {
+            None => self.since_break += n,
+            Some(first) => {
+                self.since_break += first;
+                if self.since_break <= MAX_LINE_BYTES {
+                    let last = chunk.iter().rposition(|&b| b == b'\n').unwrap_or(first);
+                    self.since_break = n - 1 - last;
+                }
+            }
+        }
+        if self.since_break > MAX_LINE_BYTES {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                LineTooLong,
+            ));
+        }
+        Ok(n)
+    }
+}
+
 /// What a file's columns must be: `t,i,{prefix}1..{prefix}width` and then `extra` columns.
 #[derive(Debug, Clone)]
 pub struct StepLayout {
@@ -143,7 +206,7 @@ pub struct StepReader<R: Read> {
     subsystems: usize,
     /// The first indicator column (`gamma`, docs/theory.md §13: 0 or 1); the header's length if none.
     first_indicator: usize,
-    reader: csv::Reader<R>,
+    reader: csv::Reader<LineLimit<R>>,
     record: csv::ByteRecord,
     next_t: usize,
     last_line: u64,
@@ -177,7 +240,7 @@ impl<R: Read> StepReader<R> {
             .has_headers(false)
             .flexible(true)
             .buffer_capacity(1 << 16)
-            .from_reader(source);
+            .from_reader(LineLimit::new(source));
         let first_indicator = header
             .iter()
             .position(|h| INDICATOR_COLUMNS.contains(&h.as_str()))
@@ -225,6 +288,9 @@ impl<R: Read> StepReader<R> {
 
     fn csv_error(&self, line: u64, e: csv::Error) -> Error {
         match e.kind() {
+            csv::ErrorKind::Io(io) if io.get_ref().is_some_and(|e| e.is::<LineTooLong>()) => {
+                self.err(line, LineTooLong.to_string())
+            }
             csv::ErrorKind::Io(io) => Error::Io {
                 path: self.name.clone().into(),
                 err: std::io::Error::new(io.kind(), io.to_string()),

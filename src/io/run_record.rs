@@ -46,11 +46,13 @@ impl RunRecord {
     /// Reads `run.json` from `dir`; `None` when there is none.
     pub fn load(dir: &Path) -> Result<Option<Self>> {
         let path = dir.join(Self::FILE);
-        let text = match std::fs::read_to_string(&path) {
-            Ok(t) => t,
+        let file = match std::fs::File::open(&path) {
+            Ok(file) => file,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(Error::read(&path, e)),
         };
+        let name = path.display().to_string();
+        let text = super::read_text(&name, file, super::MAX_DOCUMENT_BYTES, "run record")?;
         serde_json::from_str(&text).map(Some).map_err(|e| {
             Error::json(
                 path.display().to_string(),

@@ -10,7 +10,7 @@ use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
 use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
-use crate::io::{StepLayout, StepReader};
+use crate::io::{LineLimit, MAX_DOCUMENT_BYTES, StepLayout, StepReader};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
 type CsvReader = StepReader<Box<dyn Read>>;
@@ -52,11 +52,22 @@ pub(crate) fn open(path: &Path) -> Result<Box<dyn Read>> {
     let bytes = match STDIN.get() {
         Some(bytes) => bytes,
         None => {
+            // Held whole, so bounded as a document is.
             let mut bytes = Vec::new();
             std::io::stdin()
                 .lock()
+                .take(MAX_DOCUMENT_BYTES + 1)
                 .read_to_end(&mut bytes)
                 .map_err(|e| Error::read("<stdin>", e))?;
+            if bytes.len() as u64 > MAX_DOCUMENT_BYTES {
+                return Err(Error::File {
+                    file: "<stdin>".into(),
+                    msg: format!(
+                        "larger than {}, the most a figure holds of standard input; give the file by its name",
+                        crate::memory::human_bytes(MAX_DOCUMENT_BYTES)
+                    ),
+                });
+            }
             STDIN.get_or_init(|| bytes)
         }
     };
@@ -92,7 +103,7 @@ fn probe_csv(path: &Path) -> Result<(Vec<String>, usize)> {
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(false)
         .flexible(true)
-        .from_reader(open(path)?);
+        .from_reader(LineLimit::new(open(path)?));
     let mut record = csv::StringRecord::new();
     let csv_err = |e: csv::Error| Error::Csv {
         file: name.clone(),

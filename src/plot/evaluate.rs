@@ -7,7 +7,6 @@
 //! `null` where undefined), a third panel draws it against time. For `evaluate --sweep-p`: RMSE
 //! and ANEES against the arrival probability `p`, one curve per filter.
 
-use std::io::Read;
 use std::ops::Range;
 use std::path::Path;
 
@@ -18,6 +17,8 @@ use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use serde::Deserialize;
 use serde::de::IgnoredAny;
+
+use crate::io::{MAX_DOCUMENT_BYTES, read_text};
 
 use super::data::file_name;
 use super::{
@@ -70,10 +71,12 @@ pub fn run(input: &Path, out: &Path) -> Result<()> {
 
 fn read(path: &Path) -> Result<EvaluationFile> {
     let name = super::data::display_name(path);
-    let mut text = String::new();
-    super::data::open(path)?
-        .read_to_string(&mut text)
-        .map_err(|e| Error::read(&name, e))?;
+    let text = read_text(
+        &name,
+        super::data::open(path)?,
+        MAX_DOCUMENT_BYTES,
+        "evaluation",
+    )?;
     let not_eval = |what: String| Error::File {
         file: name.clone(),
         msg: format!("not the JSON of `sisfilt evaluate --out`: {what}"),
