@@ -24,7 +24,10 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let allow_empty = mode & 1 == 1;
-    let layout = StepLayout::measurements(2, allow_empty);
+    let layout = StepLayout {
+        allow_empty,
+        ..StepLayout::measurements(2)
+    };
     let mut reader = match StepReader::new(NAME, bytes, layout, SUBSYSTEMS) {
         Ok(r) => r,
         Err(e) => return check_message(&e),

@@ -107,6 +107,7 @@ def fit(
     band: Optional[int] = None,
     dropouts: str = "unknown",
     max_iter: int = 200,
+    max_memory: Optional[int] = None,
 ) -> Tuple[dict, Model]: ...
 def evaluate(
     model: Model,

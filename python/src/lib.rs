@@ -770,7 +770,7 @@ impl Filter {
 #[pyfunction]
 #[pyo3(signature = (
     model, y, u = None, *, params = None, filter = "joint", band = None, dropouts = "unknown",
-    max_iter = sisfilt::fit::DEFAULT_MAX_ITER
+    max_iter = sisfilt::fit::DEFAULT_MAX_ITER, max_memory = None
 ))]
 #[allow(clippy::too_many_arguments)]
 fn fit<'py>(
@@ -783,6 +783,7 @@ fn fit<'py>(
     band: Option<usize>,
     dropouts: &str,
     max_iter: usize,
+    max_memory: Option<u64>,
 ) -> PyResult<(Bound<'py, PyAny>, Model)> {
     let dropouts: sisfilt::filter::Dropouts = choice("dropouts", dropouts)?;
     let params = match params {
@@ -800,6 +801,7 @@ fn fit<'py>(
         band,
         dropouts,
         max_iter,
+        max_memory,
     }
     .check()
     .map_err(py_err)?;

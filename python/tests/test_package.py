@@ -127,14 +127,16 @@ def test_simulate_refuses_arrays_above_max_memory_before_allocating():
 
 def test_filters_above_max_memory_raise_value_error_before_allocating():
     """A raised max_lifted or a wide band on a long chain: the filter's arrays are weighed
-    against max_memory before they are allocated (the process aborted), in Filter, estimate
-    and evaluate (where the filter is skipped with a note)."""
+    against max_memory before they are allocated (the process aborted), in Filter, fit,
+    estimate and evaluate (where the filter is skipped with a note)."""
     text = open(config("paper.toml")).read().replace("subsystems = 6", "subsystems = 100000")
     model = sisfilt.Model.from_toml_str(text)
     with pytest.raises(ValueError, match=r"the joint filter \(band k = 99999.* above max_memory 8\.0 GiB"):
         sisfilt.Filter(model, filter="joint", band=99999)
     with pytest.raises(ValueError, match=r"the centralized filter \(lifted state of size N·n = 200000\)"):
         sisfilt.Filter(model, filter="centralized", max_lifted=10**6)
+    with pytest.raises(ValueError, match=r"the joint filter \(band k = 99999"):
+        sisfilt.fit(model, np.zeros((2, 100000, 1)), band=99999)
     platoon = sisfilt.Model.from_toml(config("platoon.toml"))
     y = np.zeros((3, 20, 2))
     with pytest.raises(ValueError, match="raise max_memory"):

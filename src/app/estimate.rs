@@ -249,7 +249,7 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         &args.data.meas.display().to_string(),
         inputs_name.as_deref(),
     );
-    let out_name = args.out.display().to_string();
+    let out_name = output.name();
     // Filtered rows reach a waiting reader step by step; smoothed ones only at the end.
     let live = output.is_live() && spec.output() != EstimateKind::Smoothed;
     let writer = EstimatesWriter::new(output, args.format(), spec.columns(model), Some(&metadata))

@@ -43,6 +43,10 @@ pub struct FitArgs {
     /// exact Gaussian likelihood (p does not enter it).
     #[arg(long, value_parser = choice::<Dropouts>(), default_value = "unknown")]
     pub dropouts: Dropouts,
+    /// Largest memory the filter may hold, checked before its arrays are allocated: bytes, or
+    /// with a K, M or G suffix [default: 8G].
+    #[arg(long, value_name = "BYTES", value_parser = super::estimate::parse_max_memory)]
+    pub max_memory: Option<u64>,
     /// Iterations of the optimiser (L-BFGS), at most.
     #[arg(long, value_name = "N", default_value_t = DEFAULT_MAX_ITER)]
     pub max_iter: usize,
@@ -70,6 +74,7 @@ impl FitArgs {
             band: self.band,
             dropouts: self.dropouts,
             max_iter: self.max_iter,
+            max_memory: self.max_memory,
         };
         Ok(spec.check().map_err(in_flag_words)?)
     }

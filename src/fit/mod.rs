@@ -91,6 +91,8 @@ pub struct FitSpec {
     pub band: Option<usize>,
     pub dropouts: Dropouts,
     pub max_iter: usize,
+    /// The memory the filter may hold ([`crate::memory`]; default 8 GiB).
+    pub max_memory: Option<u64>,
 }
 
 impl Default for FitSpec {
@@ -102,6 +104,7 @@ impl Default for FitSpec {
             band: None,
             dropouts: Dropouts::Unknown,
             max_iter: DEFAULT_MAX_ITER,
+            max_memory: None,
         }
     }
 }
@@ -140,6 +143,7 @@ impl FitSpec {
             update,
             dropouts: self.dropouts,
             band: self.band,
+            max_memory: self.max_memory,
             ..RunSpec::default()
         }
         .check()

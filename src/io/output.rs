@@ -164,10 +164,10 @@ impl Output {
         }
     }
 
-    /// The path written to, or `-`.
+    /// The path written to, or `<stdout>`, for messages.
     pub fn name(&self) -> String {
         match self {
-            Output::Stdout(_) => "-".into(),
+            Output::Stdout(_) => "<stdout>".into(),
             Output::File { dest, .. } | Output::Special { dest, .. } => dest.display().to_string(),
         }
     }
