@@ -232,10 +232,9 @@ enum Moments {
 /// How far below the variance one reading resolves the loading's floor lies.
 const FLOOR_SCALE: f64 = 1e-100;
 
-/// The diagonal loading of docs/theory.md §8 "Loading": `P_ii += ε max(tr P_ii / n, σ²) I` on
-/// every diagonal block, `σ²` the variance one reading resolves ([`Loading::floor_of`]), so
-/// that a block whose variance is zero (a state known exactly) or has decayed to nothing still
-/// gets a loading.
+/// The diagonal loading of docs/theory.md §8 "Loading": `P_ii += ε max(tr P_ii / n, σ²_f) I`
+/// on every diagonal block, with the floor `σ²_f` of [`Loading::floor_of`], so that a block
+/// whose variance is zero (a state known exactly) or has decayed to nothing still gets one.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Loading {
     pub eps: f64,
@@ -251,10 +250,10 @@ impl Loading {
         }
     }
 
-    /// `σ² = 10⁻¹⁰⁰ min tr M / tr(Jᵀ J)` over the parameter sets that measure anything: the
-    /// variance of a state element as one reading resolves it, scaled far below any variance
-    /// that matters and far above where products of two variances underflow (0 when nothing
-    /// is measured).
+    /// `σ²_f = 10⁻¹⁰⁰ min tr M / tr(Jᵀ J)` over the parameter sets that measure anything:
+    /// the variance of a state element as one reading resolves it, scaled far below any
+    /// variance that matters and far above where products of two variances underflow (0 when
+    /// nothing is measured).
     pub fn floor_of(model: &Model) -> f64 {
         let floor = model
             .param_sets()
