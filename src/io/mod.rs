@@ -23,9 +23,10 @@ use crate::error::{Error, Result};
 /// standard input): an evaluation of 10⁵ steps with every filter holds about 20 MB.
 pub const MAX_DOCUMENT_BYTES: u64 = 256 << 20;
 
-/// The text of the input `name` from `source`, refused above `max_bytes` (a file of gigabytes,
-/// `/dev/zero`) before it is held whole; `what` names the kind of file in the message.
-pub fn read_text(name: &str, source: impl Read, max_bytes: u64, what: &str) -> Result<String> {
+/// The bytes of the input `name` from `source`, refused above `max_bytes` (a file of
+/// gigabytes, `/dev/zero`) before they are held whole; `beyond` says in the message what the
+/// limit is (`the largest config read`).
+pub fn read_bytes(name: &str, source: impl Read, max_bytes: u64, beyond: &str) -> Result<Vec<u8>> {
     let mut bytes = Vec::new();
     source
         .take(max_bytes + 1)
@@ -35,11 +36,17 @@ pub fn read_text(name: &str, source: impl Read, max_bytes: u64, what: &str) -> R
         return Err(Error::File {
             file: name.to_string(),
             msg: format!(
-                "larger than {}, the largest {what} read",
+                "larger than {}, {beyond}",
                 crate::memory::human_bytes(max_bytes)
             ),
         });
     }
+    Ok(bytes)
+}
+
+/// [`read_bytes`] of a text; `what` names the kind of file in the message.
+pub fn read_text(name: &str, source: impl Read, max_bytes: u64, what: &str) -> Result<String> {
+    let bytes = read_bytes(name, source, max_bytes, &format!("the largest {what} read"))?;
     String::from_utf8(bytes).map_err(|_| {
         let err = std::io::Error::new(
             std::io::ErrorKind::InvalidData,

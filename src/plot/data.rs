@@ -10,7 +10,7 @@ use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
 use crate::io::estimates::{EstimatesColumns, EstimatesDocument};
-use crate::io::{LineLimit, MAX_DOCUMENT_BYTES, StepLayout, StepReader};
+use crate::io::{LineLimit, MAX_DOCUMENT_BYTES, StepLayout, StepReader, read_bytes};
 
 /// The streaming reader of a per-`(t, i)` CSV file.
 type CsvReader = StepReader<Box<dyn Read>>;
@@ -53,21 +53,12 @@ pub(crate) fn open(path: &Path) -> Result<Box<dyn Read>> {
         Some(bytes) => bytes,
         None => {
             // Held whole, so bounded as a document is.
-            let mut bytes = Vec::new();
-            std::io::stdin()
-                .lock()
-                .take(MAX_DOCUMENT_BYTES + 1)
-                .read_to_end(&mut bytes)
-                .map_err(|e| Error::read("<stdin>", e))?;
-            if bytes.len() as u64 > MAX_DOCUMENT_BYTES {
-                return Err(Error::File {
-                    file: "<stdin>".into(),
-                    msg: format!(
-                        "larger than {}, the most a figure holds of standard input; give the file by its name",
-                        crate::memory::human_bytes(MAX_DOCUMENT_BYTES)
-                    ),
-                });
-            }
+            let bytes = read_bytes(
+                "<stdin>",
+                std::io::stdin().lock(),
+                MAX_DOCUMENT_BYTES,
+                "the most a figure holds of standard input; give the file by its name",
+            )?;
             STDIN.get_or_init(|| bytes)
         }
     };

@@ -320,7 +320,6 @@ struct Mixture {
 pub struct JointFilter {
     model: Model,
     opts: JointOptions,
-    known: bool,
     k: usize,
     loading: Loading,
     /// The next time step to process.
@@ -409,7 +408,6 @@ impl JointFilter {
         Ok(Self {
             model: model.clone(),
             opts,
-            known,
             k,
             loading,
             t: 1,
@@ -477,6 +475,11 @@ impl JointFilter {
                 model.subsystems
             )
         })
+    }
+
+    /// Whether the filter is told which measurements were lost.
+    fn known(&self) -> bool {
+        self.opts.dropouts == Dropouts::Known
     }
 
     /// The covariance band `k` in use.
@@ -576,9 +579,10 @@ impl JointFilter {
             }
             return Ok(());
         }
+        let known = self.known();
         for i in 0..model.subsystems {
             let prm = model.param_set(window.ids[i]);
-            let p = if self.known { 1.0 } else { window.p[i] };
+            let p = if known { 1.0 } else { window.p[i] };
             let s = self.info.s.as_mut_slice();
             match &self.moments {
                 Moments::None => {}
@@ -595,7 +599,7 @@ impl JointFilter {
             let log_density = self.info.add(
                 prm,
                 p,
-                self.known,
+                known,
                 &y[i * q..(i + 1) * q],
                 &u[i * m..(i + 1) * m],
                 &self.x_pred[i * n..(i + 1) * n],
@@ -836,7 +840,7 @@ impl JointFilter {
         if self.mixture.is_some() {
             return Some(self.measurement_log_density);
         }
-        if !self.known {
+        if !self.known() {
             return None;
         }
         let explained: f64 = self
