@@ -172,8 +172,8 @@ pub struct FilterResult {
     /// The average NEES at each time step `t = 1..T` over runs and subsystems (`null` where
     /// infinite or where every term fell under the resolution floor, or before the burn-in).
     pub nees_per_step: Vec<Option<f64>>,
-    /// What the user should know about this filter's run (e.g. the centralized smoother fell
-    /// back to the information form), printed as warnings.
+    /// What the user should know about this filter's run (e.g. the joint smoother ran again
+    /// with a larger loading), printed as warnings.
     pub notes: Vec<String>,
 }
 
@@ -438,7 +438,7 @@ fn run_filters(
             if let Some(schedule) = schedules.smoothers.get(k).and_then(Option::as_ref) {
                 // The filter's means, then the stored backward gains (docs/theory.md §9).
                 let mut f = match schedule.forward {
-                    Some(forward) => Box::new(JointFilter::new(model, forward.opts)?),
+                    Some(opts) => Box::new(JointFilter::new(model, opts)?),
                     None => make_filter(model, name, opts, schedules)?,
                 };
                 let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());

@@ -7,57 +7,46 @@
 //! P(t|T)  = P(t|t) + C_t (P(t+1|T) − T(t+1)) C_tᵀ     (symmetrised)
 //! ```
 //!
-//! With `Q = 0`, `T(t+1)` can be singular to working precision and this form can diverge.
-//! When the Cholesky factor of some `T(t+1)` fails or its condition estimate exceeds
-//! [`MAX_CONDITION`], the whole run is smoothed instead by the information form at full band
-//! (the joint smoother with `k = N − 1`, exact `A_eff` and §9's loading), and a note says so.
+//! With `Q = 0`, `T(t+1)` can be singular (a state known exactly) or singular to working
+//! precision. When its Cholesky factor fails or its condition estimate exceeds
+//! [`MAX_CONDITION`], the gain takes its Moore–Penrose inverse, `C_t = P(t|t) A_effᵀ T(t+1)⁺`,
+//! which is the RTS gain there: the range of `A_eff P(t|t)` lies in that of `T(t+1)`.
+
+use std::sync::Arc;
 
 use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::filter::centralized::CentralizedLimits;
-use crate::filter::{CentralizedFilter, ChainFilter, Dropouts, JointOptions, SecondMoment, Update};
+use crate::filter::{CentralizedFilter, ChainFilter};
 use crate::model::Model;
-use crate::smoother::{
-    BackwardGain, ForwardPass, GainView, JointSmoother, MeanPass, Smoothed, Smoother,
-};
+use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
 /// Largest condition estimate of `T(t+1)` for which the RTS form is used (docs/theory.md §9).
-pub const MAX_CONDITION: f64 = 1e12;
+pub const MAX_CONDITION: f64 = 1e10;
 
 /// The stored forward pass of the centralized filter.
 pub struct CentralizedSmoother {
     model: Model,
-    known: bool,
-    update: Update,
-    limits: CentralizedLimits,
     filter: CentralizedFilter,
     x_filt: Vec<DVector<f64>>,
     x_pred: Vec<DVector<f64>>,
     p_filt: Vec<DMatrix<f64>>,
     t_pred: Vec<DMatrix<f64>>,
-    a_eff: Vec<DMatrix<f64>>,
-    /// The data, to rerun the forward pass in the information form if needed.
-    y: Vec<Vec<f64>>,
-    u: Vec<Vec<f64>>,
+    /// `A_eff(t)`, shared between the steps of an override window.
+    a_eff: Vec<Arc<DMatrix<f64>>>,
 }
 
 impl CentralizedSmoother {
     pub fn new(model: &Model, known: bool, limits: impl Into<CentralizedLimits>) -> Result<Self> {
-        let limits = limits.into();
         Ok(Self {
             model: model.clone(),
-            known,
-            update: Update::Linear,
-            limits,
-            filter: CentralizedFilter::new(model, known, limits)?,
+            filter: CentralizedFilter::new(model, known, limits.into())?,
             x_filt: Vec::new(),
             x_pred: Vec::new(),
             p_filt: Vec::new(),
             t_pred: Vec::new(),
             a_eff: Vec::new(),
-            y: Vec::new(),
-            u: Vec::new(),
         })
     }
 
@@ -65,7 +54,6 @@ impl CentralizedSmoother {
     /// [`CentralizedFilter::with_mixture_update`] forward, the same backward pass.
     pub fn with_mixture_update(mut self) -> Result<Self> {
         self.filter = self.filter.with_mixture_update()?;
-        self.update = Update::Mixture;
         Ok(self)
     }
 }
@@ -88,9 +76,12 @@ impl Smoother for CentralizedSmoother {
             size,
             self.filter.full_predicted_cov(),
         ));
-        self.a_eff.push(self.filter.lifted_system().a_eff.clone());
-        self.y.push(y.to_vec());
-        self.u.push(u.to_vec());
+        let a_eff = &self.filter.lifted_system().a_eff;
+        let shared = match self.a_eff.last() {
+            Some(last) if **last == *a_eff => Arc::clone(last),
+            _ => Arc::new(a_eff.clone()),
+        };
+        self.a_eff.push(shared);
         Ok(())
     }
 
@@ -113,16 +104,12 @@ impl Smoother for CentralizedSmoother {
         let mut gains = Vec::new();
         for k in (0..steps.saturating_sub(1)).rev() {
             let t_next = &self.t_pred[k];
-            let chol = Cholesky::new(t_next.clone());
-            let condition = chol.as_ref().map_or(f64::INFINITY, |c| {
-                let d = c.l_dirty().diagonal();
-                (d.max() / d.min()).powi(2)
-            });
-            let Some(chol) = chol.filter(|_| condition <= MAX_CONDITION) else {
-                return self.information_form_fallback(k + 1, condition, keep_gains);
-            };
             // Cᵀ = T⁻¹ A_eff P.
-            let gain_tr = chol.solve(&(&self.a_eff[k] * &ps[k]));
+            let ap = &*self.a_eff[k] * &ps[k];
+            let gain_tr = match Cholesky::new(t_next.clone()) {
+                Some(chol) if condition(&chol) <= MAX_CONDITION => chol.solve(&ap),
+                _ => pseudo_inverse(t_next, k + 1)? * ap,
+            };
             let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
             mean.apply(
                 model,
@@ -166,42 +153,21 @@ impl Smoother for CentralizedSmoother {
     }
 }
 
-impl CentralizedSmoother {
-    /// Smooths the stored data by the information form at full band (docs/theory.md §9 fallback).
-    fn information_form_fallback(
-        &self,
-        t: usize,
-        condition: f64,
-        keep_gains: bool,
-    ) -> Result<Smoothed> {
-        let model = &self.model.clone();
-        let dropouts = if self.known {
-            Dropouts::Known
-        } else {
-            Dropouts::Unknown
-        };
-        let opts = JointOptions {
-            update: self.update,
-            max_memory: self.limits.max_memory,
-            ..JointOptions::full_band(model, SecondMoment::Lifted, dropouts)
-        };
-        let mut joint: Box<dyn Smoother> =
-            Box::new(JointSmoother::new(model, opts)?.loading_as_noise());
-        for (y, u) in self.y.iter().zip(&self.u) {
-            joint.step(y, u)?;
-        }
-        let mut out = joint.backward(keep_gains)?;
-        out.bands = None;
-        // The joint smoother may itself have rerun with a larger loading.
-        out.forward.get_or_insert(ForwardPass {
-            opts,
-            loading_as_noise: true,
-        });
-        out.notes.push(format!(
-            "centralized smoother: T({}) is numerically singular (condition estimate {condition:.1e} > {MAX_CONDITION:e}); smoothed by the information form at full band with loading {:e} instead (docs/theory.md §9)",
-            t + 1,
-            opts.loading_for(model)
-        ));
-        Ok(out)
-    }
+/// `λ_max / λ_min` of `T` from its Cholesky factor's diagonal (an estimate from below).
+fn condition(chol: &Cholesky<f64, nalgebra::Dyn>) -> f64 {
+    let d = chol.l_dirty().diagonal();
+    (d.max() / d.min()).powi(2)
+}
+
+/// `T⁺`, singular values below `σ_max / MAX_CONDITION` taken as zero (docs/theory.md §9):
+/// directions that small are rounding, not information.
+fn pseudo_inverse(t_next: &DMatrix<f64>, t: usize) -> Result<DMatrix<f64>> {
+    let svd = t_next.clone().svd(true, true);
+    let tolerance = svd.singular_values.max() / MAX_CONDITION;
+    svd.pseudo_inverse(tolerance).map_err(|_| Error::Numerical {
+        t,
+        i: 1,
+        msg: "centralized smoother: the singular value decomposition of T(t+1) did not converge"
+            .into(),
+    })
 }

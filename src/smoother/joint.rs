@@ -27,7 +27,7 @@ use crate::linalg::band::{
     diag_t_times_gen, gemm_acc, gen_t_times_gen, sym_times_gen,
 };
 use crate::model::Model;
-use crate::smoother::{BackwardGain, ForwardPass, GainView, MeanPass, Smoothed, Smoother};
+use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
 /// The stored forward pass of the joint filter.
 pub struct JointSmoother {
@@ -39,8 +39,6 @@ pub struct JointSmoother {
     posterior: Vec<SymBand>,
     /// The `A_eff` band of each step, shared between the steps of a window.
     a_eff: Vec<Arc<GenBand>>,
-    /// Treat the loading `ε` as process noise `Q + ε I` (see [`Self::loading_as_noise`]).
-    loading_as_noise: bool,
     opts: JointOptions,
     /// With the default loading: every step's `y` and `u`, to run again with a larger
     /// loading if the backward pass loses positive definiteness (docs/theory.md §9).
@@ -73,22 +71,9 @@ impl JointSmoother {
             prior: Vec::new(),
             posterior: Vec::new(),
             a_eff: Vec::new(),
-            loading_as_noise: false,
             opts,
             data: retry.then(Default::default),
         })
-    }
-
-    /// At full band with exact `A_eff`, the loaded filter is exactly the filter of the model
-    /// with process noise `Q + ε I` (`Λ⁻ = (T + ε I)⁻¹`). The backward pass then uses that
-    /// model too: `G_i` the roots of `Q_i + ε I` and `Λˢ = P(t|T)⁻¹` unloaded, which is the
-    /// exact smoother of the perturbed model. Loading `Λˢ` instead, as the band-k smoother
-    /// must, is not consistent with `G = 0` when `Q = 0` and `A_eff` is singular: the
-    /// errors grow backwards by about `1/ε` per step. Used by the centralized smoother's
-    /// fallback (docs/theory.md §9).
-    pub fn loading_as_noise(mut self) -> Self {
-        self.loading_as_noise = true;
-        self
     }
 }
 
@@ -127,8 +112,7 @@ impl Smoother for JointSmoother {
     /// with the loadings 1e−7, 1e−6 and 1e−5 until one succeeds, and a note says which.
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let data = self.data.take();
-        let (model, opts, loading_as_noise) =
-            (self.model.clone(), self.opts, self.loading_as_noise);
+        let (model, opts) = (self.model.clone(), self.opts);
         let loading = self.filter.loading();
         let failure = match self.backward_pass(keep_gains) {
             Ok(smoothed) => return Ok(smoothed),
@@ -143,7 +127,6 @@ impl Smoother for JointSmoother {
                 ..opts
             };
             let mut smoother = JointSmoother::new(&model, opts)?;
-            smoother.loading_as_noise = loading_as_noise;
             for (y, u) in data.y.iter().zip(&data.u) {
                 smoother.step(y, u)?;
             }
@@ -155,10 +138,7 @@ impl Smoother for JointSmoother {
                 smoothed.notes.push(format!(
                     "joint smoother: with the default loading {loading:e} the backward pass lost positive definiteness ({place}); smoothed with --loading {retry:e} instead, its forward pass included (docs/theory.md §9)"
                 ));
-                smoothed.forward = Some(ForwardPass {
-                    opts,
-                    loading_as_noise,
-                });
+                smoothed.forward = Some(opts);
                 return Ok(smoothed);
             }
         }
@@ -181,22 +161,13 @@ impl JointSmoother {
             mut prior,
             posterior,
             a_eff,
-            loading_as_noise,
             ..
         } = *self;
         let mut xs = vec![vec![0.0; big_n * n]; steps];
         xs[steps - 1].copy_from_slice(&x_filt[steps - 1]);
         let mut lam_s = posterior[steps - 1].clone();
         let mut ws = Backward::new(model, k);
-        let precision_loading = if loading_as_noise {
-            ws.mean = MeanPass::with_extra_noise(model, loading);
-            Loading {
-                eps: 0.0,
-                ..filter.loading_rule()
-            }
-        } else {
-            filter.loading_rule()
-        };
+        let precision_loading = filter.loading_rule();
         let mut gains = Vec::new();
         // The band of P(t|T) is written into a scratch band that then trades places with
         // Λ⁻(t+1), which is no longer needed: after the pass, prior[t] holds P(t−1|T) for

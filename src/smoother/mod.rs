@@ -1,7 +1,7 @@
 //! Fixed-interval smoothing (docs/theory.md §9): `x̂(t|T)` with `P(t|T)` from every measurement of the
 //! run. Each filter has its smoother, run backward over what its forward pass stored:
 //! [`distributed`] (per-subsystem RTS on the two-step filter), [`centralized`] (RTS on the
-//! lifted filter of docs/theory.md §7, with the information form as fallback) and [`joint`] (the
+//! lifted filter of docs/theory.md §7, the pseudo-inverse where `T(t+1)` is singular) and [`joint`] (the
 //! information form on the joint band-k filter of docs/theory.md §8, linear in `N`).
 //!
 //! The Nahi model is exact here: with `ν = (Γ − 𝒫) J X + d` the measurements read
@@ -34,35 +34,15 @@ pub struct Smoothed {
     pub p: Vec<Vec<f64>>,
     /// Joint smoother: per step, the band of `P(t|T)` (width `k`).
     pub bands: Option<Vec<SymBand>>,
-    /// What the user should know (e.g. the centralized smoother fell back to the
-    /// information form), printed as warnings.
+    /// What the user should know (e.g. the joint smoother ran again with a larger loading),
+    /// printed as warnings.
     pub notes: Vec<String>,
     /// With [`Smoother::backward`]`(true)`: the gain of each step `t = 1..T−1`.
     pub gains: Option<Vec<BackwardGain>>,
     /// Set when the backward pass ran on another forward pass than the smoother's own filter
-    /// (the centralized smoother's fallback, or the joint smoother's rerun with a larger
-    /// loading): the joint filter whose means the gains belong to.
-    pub forward: Option<ForwardPass>,
-}
-
-/// The joint filter a smoother's gains belong to when it is not the smoother's own filter
-/// ([`Smoothed::forward`]).
-#[derive(Debug, Clone, Copy)]
-pub struct ForwardPass {
-    pub opts: JointOptions,
-    /// Its loading taken as process noise ([`JointSmoother::loading_as_noise`]).
-    pub loading_as_noise: bool,
-}
-
-impl ForwardPass {
-    /// The mean half of the backward pass that goes with this filter.
-    fn mean_pass(&self, model: &Model) -> MeanPass {
-        if self.loading_as_noise {
-            MeanPass::with_extra_noise(model, self.opts.loading_for(model))
-        } else {
-            MeanPass::new(model)
-        }
-    }
+    /// (the joint smoother's rerun with a larger loading): the options of the joint filter
+    /// whose means the gains belong to.
+    pub forward: Option<JointOptions>,
 }
 
 /// A smoother: the forward pass, one time step at a time, then the backward pass. `Send`, as a
@@ -155,20 +135,12 @@ pub struct MeanPass {
 
 impl MeanPass {
     pub fn new(model: &Model) -> Self {
-        Self::with_extra_noise(model, 0.0)
-    }
-
-    /// With the roots of `Q_i + ε I` in place of those of `Q_i`.
-    pub fn with_extra_noise(model: &Model, eps: f64) -> Self {
         let (n, big_n) = (model.dims.n, model.subsystems);
         Self {
             roots: model
                 .param_sets()
                 .iter()
-                .map(|p| {
-                    let q = &p.Q + DMatrix::identity(n, n) * eps;
-                    psd_sqrt(&q).as_slice().to_vec()
-                })
+                .map(|p| psd_sqrt(&p.Q).as_slice().to_vec())
                 .collect(),
             e: vec![0.0; big_n * n],
             v: vec![0.0; big_n * n],
@@ -254,7 +226,7 @@ pub struct SmootherSchedule {
     pub notes: Vec<String>,
     /// The filter whose means the gains belong to, when not the smoother's own
     /// ([`Smoothed::forward`]).
-    pub forward: Option<ForwardPass>,
+    pub forward: Option<JointOptions>,
 }
 
 impl SmootherSchedule {
@@ -288,10 +260,7 @@ impl SmootherSchedule {
     ) -> Vec<Vec<f64>> {
         let steps = x_filt.len();
         assert_eq!(steps, self.gains.len() + 1, "the schedule's horizon");
-        let mut pass = match &self.forward {
-            Some(forward) => forward.mean_pass(model),
-            None => MeanPass::new(model),
-        };
+        let mut pass = MeanPass::new(model);
         let mut xs = x_filt.to_vec();
         for k in (0..steps - 1).rev() {
             let (head, tail) = xs.split_at_mut(k + 1);
@@ -336,10 +305,11 @@ pub fn memory_bytes(model: &Model, kind: SmootherKind, steps: usize) -> u64 {
             let (q, m) = (model.dims.q as u64, model.dims.m as u64);
             steps * big_n * (2 * n + 2 * (k + 1) * n * n + q + m) * 8
         }
-        // P(t|t), T(t+1) of the whole chain, the means, y and u.
+        // P(t|t), T(t+1) of the whole chain and the means per step; A_eff per window.
         SmootherKind::Centralized => {
             let size = big_n * n;
-            steps * (2 * size * size + 2 * size) * 8
+            let windows = model.windows().len() as u64;
+            (steps * (2 * size * size + 2 * size) + windows * size * size) * 8
         }
     };
     forward + output

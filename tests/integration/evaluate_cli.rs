@@ -143,10 +143,11 @@ fn table_lists_filters_and_notes_skipped_ones() {
 }
 
 /// A chain whose predicted covariance is singular (`Q = 0`, rank-one `A`, no coupling out of
-/// the states): `evaluate --smooth` says, once, that the centralized smoother fell back to
-/// the information form (docs/theory.md §9), and its row still beats the filter.
+/// the states): `evaluate --smooth` smooths it through the pseudo-inverse of `T(t+1)`
+/// (docs/theory.md §9) with nothing to warn about, and the centralized smoother's row beats
+/// its filter.
 #[test]
-fn smoother_fallback_is_announced() {
+fn smoothers_run_on_a_singular_prediction() {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("singular.toml");
     std::fs::write(
@@ -167,13 +168,7 @@ fn smoother_fallback_is_announced() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{stderr}");
-    let warnings: Vec<&str> = stderr
-        .lines()
-        .filter(|l| {
-            l.starts_with("warning: centralized-smoother: ") && l.contains("information form")
-        })
-        .collect();
-    assert_eq!(warnings.len(), 1, "{stderr}");
+    assert!(!stderr.contains("centralized-smoother"), "{stderr}");
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap();
     let row = v["filters"]
@@ -182,7 +177,8 @@ fn smoother_fallback_is_announced() {
         .iter()
         .find(|f| f["name"] == "centralized-smoother")
         .unwrap();
-    assert_eq!(row["notes"].as_array().unwrap().len(), 1);
+    assert!(row["skipped"].is_null(), "{row}");
+    assert_eq!(row["notes"].as_array().map_or(0, Vec::len), 0, "{row}");
     assert!(row["rmse_ratio_to_filter"].as_f64().unwrap() < 1.0);
 }
 
@@ -411,8 +407,8 @@ fn known_start(dir: &std::path::Path) -> std::path::PathBuf {
 /// others complete: with `--loading 0` the joint filters cannot start from a zero initial
 /// covariance (exit 1 and no table before, from the covariance pass computed once for all
 /// runs); with the default loading every filter and smoother runs and is scored, and follows
-/// the known trajectory. (Not the centralized smoothers: on a zero `T(t+1)` their
-/// information-form fallback breaks down, docs/theory.md §9.)
+/// the known trajectory (the centralized smoothers through the pseudo-inverse of a zero
+/// `T(t+1)`, docs/theory.md §9).
 #[test]
 fn a_filter_that_breaks_down_is_a_failed_row() {
     let dir = tempfile::tempdir().unwrap();
@@ -420,7 +416,8 @@ fn a_filter_that_breaks_down_is_a_failed_row() {
     let out = dir.path().join("eval.json");
     let filters = "distributed,distributed-paper,joint,centralized,centralized-known,naive,\
         distributed-mixture,joint-mixture,centralized-mixture,distributed-smoother,\
-        joint-smoother,distributed-mixture-smoother,joint-mixture-smoother";
+        joint-smoother,centralized-smoother,distributed-mixture-smoother,joint-mixture-smoother,\
+        centralized-mixture-smoother";
     let run = |extra: &[&str]| {
         let assert = sisfilt()
             .arg("evaluate")

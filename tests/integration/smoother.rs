@@ -3,13 +3,14 @@
 //! moments and a dense solve of (P2)–(P4)), a plain RTS smoother written here, and each other
 //! where the maths says they agree.
 
-use crate::common::{dense_interconnect, model_from, shipped_model, simulate_run};
+use crate::common::{dense_interconnect, model_from, shipped_config, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
 use sisfilt::filter::{
     CentralizedFilter, ChainFilter, Dropouts, JointFilter, JointOptions, SecondMoment,
     TwoStepOptions, Update, two_step,
 };
 use sisfilt::model::Model;
+use sisfilt::smoother::centralized::MAX_CONDITION;
 use sisfilt::smoother::{
     CentralizedSmoother, DistributedSmoother, JointSmoother, Smoothed, Smoother, SmootherSchedule,
 };
@@ -197,6 +198,54 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
         gains: None,
         forward: None,
     }
+}
+
+/// The largest condition number of `T(t+1) = P(t+1|t)` over `t = 1..T−1`, from a dense
+/// Kalman filter of the lifted model in the unknown-dropout mode written here (the
+/// measurement noise `M + p(1−p) J S_ii Jᵀ` with the exact prior moment, as in
+/// [`batch_estimate`]); its covariances do not depend on `y`.
+fn largest_prediction_condition(model: &Model, u: &[Vec<f64>]) -> f64 {
+    let (n, q, m, big_n) = (model.dims.n, model.dims.q, model.dims.m, model.subsystems);
+    let size = big_n * n;
+    let unit = |k: usize, len: usize| DVector::from_fn(len, |r, _| f64::from(r == k));
+    let blocks = |f: &dyn Fn(usize) -> DMatrix<f64>, rows: usize| {
+        let mut out = DMatrix::zeros(big_n * rows, size);
+        for i in 0..big_n {
+            out.view_mut((i * rows, i * n), (rows, n)).copy_from(&f(i));
+        }
+        out
+    };
+    let mut mean = DVector::from_fn(size, |r, _| model.initial_mean[r % n]);
+    let mut prior = blocks(&|_| model.initial_cov.clone(), n);
+    let mut pred = prior.clone();
+    let mut largest = 0.0_f64;
+    for t in 1..u.len() {
+        let h = blocks(&|i| model.params(t, i + 1).J.clone() * model.p(t, i + 1), q);
+        let mut noise = DMatrix::zeros(big_n * q, big_n * q);
+        for i in 0..big_n {
+            let (prm, p) = (model.params(t, i + 1), model.p(t, i + 1));
+            let mi = mean.rows(i * n, n);
+            let s = prior.view((i * n, i * n), (n, n)) + mi * mi.transpose();
+            let r = &prm.M + (&prm.J * s * prm.J.transpose()) * (p * (1.0 - p));
+            noise.view_mut((i * q, i * q), (q, q)).copy_from(&r);
+        }
+        let gain_tr = (&h * &pred * h.transpose() + noise)
+            .cholesky()
+            .unwrap()
+            .solve(&(&h * &pred));
+        let filt = &pred - (&h * &pred).transpose() * gain_tr;
+        let zero_u = DVector::zeros(big_n * m);
+        let a = DMatrix::from_fn(size, size, |r, c| {
+            dense_step(model, t, &unit(c, size), &zero_u)[r]
+        });
+        let q_big = blocks(&|i| model.params(t, i + 1).Q.clone(), n);
+        pred = &a * filt * a.transpose() + &q_big;
+        mean = dense_step(model, t, &mean, &DVector::from_column_slice(&u[t - 1]));
+        prior = &a * prior * a.transpose() + q_big;
+        let eig = pred.clone().symmetric_eigen().eigenvalues;
+        largest = largest.max(eig.max() / eig.min().max(0.0));
+    }
+    largest
 }
 
 fn lose_some(run: &crate::common::Run, q: usize) -> Vec<Vec<f64>> {
@@ -657,27 +706,65 @@ fn singular_prediction_text() -> String {
         )
 }
 
-/// A singular `T(t+1)`: the centralized smoother says so in a note and smooths by the
-/// information form, which still matches the batch estimator (up to the effect of the
-/// loading ε = 1e−9 that keeps `Λ⁻` defined).
+/// A singular `T(t+1)`: the centralized smoother's gain takes its Moore–Penrose inverse
+/// (docs/theory.md §9) and still matches the batch estimator: on [`singular_prediction`],
+/// and on `paper.toml` (`Q = 0`) over 300 steps in both dropout modes (the information form
+/// it fell back to before broke down at `t = 298`); on both the condition of some `T(t+1)`
+/// passes [`MAX_CONDITION`] (asserted). With the initial state known exactly `T(t+1) = 0`,
+/// and the smoothed estimates are the true states.
 #[test]
-fn centralized_smoother_falls_back_on_a_singular_prediction() {
+fn centralized_smoother_takes_the_pseudo_inverse_of_a_singular_prediction() {
     let model = singular_prediction();
     let run = simulate_run(&model, 7);
+    let condition = largest_prediction_condition(&model, &run.u);
+    assert!(condition > MAX_CONDITION, "{condition:e}");
     let batch = batch_estimate(&model, &run.y, &run.u, false);
     let smoothed = smooth(
         Box::new(CentralizedSmoother::new(&model, false, 100).unwrap()),
         &run.y,
         &run.u,
     );
-    assert_eq!(smoothed.notes.len(), 1, "{:?}", smoothed.notes);
-    assert!(
-        smoothed.notes[0].contains("information form"),
-        "{}",
-        smoothed.notes[0]
-    );
+    assert!(smoothed.notes.is_empty(), "{:?}", smoothed.notes);
     let (gx, gp) = gap(&smoothed, &batch);
     assert!(gx < 1e-6 && gp < 1e-6, "x {gx:e}, P {gp:e}");
+
+    let paper = std::fs::read_to_string(shipped_config("paper.toml")).unwrap();
+    let model = model_from(&paper.replace("steps = 150", "steps = 300"));
+    let run = simulate_run(&model, 3);
+    let condition = largest_prediction_condition(&model, &run.u);
+    assert!(condition > MAX_CONDITION, "{condition:e}");
+    for known in [false, true] {
+        let y = if known {
+            lose_some(&run, model.dims.q)
+        } else {
+            run.y.clone()
+        };
+        let batch = batch_estimate(&model, &y, &run.u, known);
+        let smoothed = smooth(
+            Box::new(CentralizedSmoother::new(&model, known, 100).unwrap()),
+            &y,
+            &run.u,
+        );
+        let (gx, gp) = gap(&smoothed, &batch);
+        assert!(gx < 1e-8 && gp < 1e-8, "known {known}: x {gx:e}, P {gp:e}");
+    }
+
+    let known_start = model_from(&paper.replace(
+        "cov = [[1.0, 0.0], [0.0, 1.0]]",
+        "cov = [[0.0, 0.0], [0.0, 0.0]]",
+    ));
+    let run = simulate_run(&known_start, 3);
+    let smoothed = smooth(
+        Box::new(CentralizedSmoother::new(&known_start, false, 100).unwrap()),
+        &run.y,
+        &run.u,
+    );
+    for (t, (xs, x)) in smoothed.x.iter().zip(&run.x).enumerate() {
+        for (a, b) in xs.iter().zip(x) {
+            assert!((a - b).abs() < 1e-12, "t = {}: {a} against {b}", t + 1);
+        }
+    }
+    assert!(smoothed.p.iter().flatten().all(|v| v.abs() < 1e-12));
 }
 
 /// The distributed smoother on a singular `T(t+1)` (one subsystem of [`singular_prediction`],
@@ -755,7 +842,7 @@ fn scheduled_backward_pass_equals_smoothing_each_run() {
             let direct = smooth(make().0, &run.y, &run.u);
             let schedule = SmootherSchedule::new(make().0, &model, &run.u).unwrap();
             let mut filter = match schedule.forward {
-                Some(forward) => Box::new(JointFilter::new(&model, forward.opts).unwrap()),
+                Some(opts) => Box::new(JointFilter::new(&model, opts).unwrap()),
                 None => make().1,
             };
             let (mut x_filt, mut x_pred) = (Vec::new(), Vec::new());
@@ -833,8 +920,7 @@ fn joint_smoother_reruns_with_a_larger_loading_where_the_default_fails() {
         assert_eq!(rerun.x, direct.x, "{what}");
         assert_eq!(rerun.p, direct.p, "{what}");
         let forward = rerun.forward.expect("the rerun's filter");
-        assert_eq!(forward.opts.loading, Some(loading), "{what}");
-        assert!(!forward.loading_as_noise, "{what}");
+        assert_eq!(forward.loading, Some(loading), "{what}");
         // The user's own 1e−9 is kept: the same failure, as an error.
         let mut own = Box::new(
             JointSmoother::new(
