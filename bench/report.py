@@ -1,13 +1,18 @@
 #!/usr/bin/env python3
 """Helpers of bench/run.sh (standard library only, except `compare`, which needs numpy).
 
-    report.py record RESULTS NAME THREADS TIME_FILE STDERR_FILE   append one run (JSON line)
-    report.py compare A.csv B.csv                                  max |a − b| of two CSVs
-    report.py write RESULTS OUT.md                                 the BENCHMARKS.md tables
+    report.py record RESULTS NAME THREADS TIME_FILE STDERR_FILE [BUILD]
+                                                   append one run (JSON line); BUILD is
+                                                   "current" (default) or "baseline"
+    report.py compare A.csv B.csv                  max |a − b| of two CSVs
+    report.py write RESULTS OUT.md                 the BENCHMARKS.md tables
+    report.py criterion TARGET_DIR                 criterion's results under TARGET_DIR
 
 `record` reads GNU time's `-v` report (wall clock, peak RSS, CPU times) and the `timings:` line
 that `sisfilt estimate --timings` prints (read / filter / write split). `write` takes the
-median over the runs of each case and checks the targets of issue 5.
+median over the runs of each case and checks the targets of issue 5; with runs of a baseline
+build it also gives each case's best run against the baseline's best, as a ratio, and checks
+the targets of issues 41 and 42 (ratios against f497e7e).
 """
 import json
 import math
@@ -47,7 +52,7 @@ TIMINGS = re.compile(
 )
 
 
-def record(results, name, threads, time_file, stderr_file):
+def record(results, name, threads, time_file, stderr_file, build="current"):
     with open(time_file) as f:
         run = parse_gnu_time(f.read())
     with open(stderr_file) as f:
@@ -60,7 +65,7 @@ def record(results, name, threads, time_file, stderr_file):
         run["writer"] = float(m.group(7))
     if run.get("exit", 0) != 0:
         sys.exit(f"error: case {name} failed:\n{err}")
-    run.update(name=name, threads=int(threads))
+    run.update(name=name, threads=int(threads), build=build)
     with open(results, "a") as f:
         f.write(json.dumps(run) + "\n")
 
@@ -81,13 +86,113 @@ def compare(a_path, b_path):
     print(json.dumps({"max_abs": float(diff.max()), "max_rel": float(rel.max()), "rows": len(a)}))
 
 
-def load(results):
+def load(results, build="current"):
+    """The runs of one build by case name, in the order the cases ran."""
     cases = {}
     with open(results) as f:
         for line in f:
             run = json.loads(line)
-            cases.setdefault(run["name"], []).append(run)
+            if run.get("build", "current") == build:
+                cases.setdefault(run["name"], []).append(run)
     return cases
+
+
+def best(runs, key):
+    """The best (smallest) value of `key` over the runs: the figure least disturbed by the
+    machine's other work, and the one the ratios against a baseline compare."""
+    values = [r[key] for r in runs if key in r]
+    return min(values) if values else float("nan")
+
+
+def against_section(cases, base_cases, env):
+    """The targets of issues 41 and 42 and every case as a ratio against the baseline build
+    (its best run over this tree's best run: above 1 is faster), as Markdown lines."""
+    sha, threads = env["against"], env["threads"]
+
+    def crit_best(key, threads):
+        rates = [r[f"core/threads/{threads}"][1] / (r[f"core/threads/{threads}"][0] * 1e-9)
+                 for r in env.get(key, []) if f"core/threads/{threads}" in r]
+        return max(rates) if rates else float("nan")
+
+    core1, base1 = crit_best("core_runs", 1), crit_best("baseline_core_runs", 1)
+    core2 = crit_best("core_runs", threads)
+    short1, short1_base = cases.get("W100-1thread", []), base_cases.get("W100-1thread", [])
+    short2 = cases.get(f"W100-{threads}threads", [])
+    short2_base = base_cases.get(f"W100-{threads}threads", [])
+
+    def rate(runs):
+        return best(runs, "rows") / best(runs, "wall") if runs else float("nan")
+
+    # The setup share: "other" of the best run over that run's total.
+    fastest = min(short1, key=lambda r: r.get("total", math.inf), default={})
+    setup = fastest.get("other", math.nan) / fastest.get("total", math.nan)
+    targets = [
+        ("41: filter core, one thread (criterion `core/threads/1`, W)", core1 / base1,
+         f"{core1 / base1:.2f}× ({fmt_rate(core1)} against {fmt_rate(base1)} subsystem-steps/s)",
+         "≥ 2.2×"),
+        ("41: filter phase, one thread (`--timings`, N = 10⁴, T = 100)",
+         best(short1_base, "filter") / best(short1, "filter"),
+         f"{best(short1_base, 'filter') / best(short1, 'filter'):.2f}× "
+         f"({best(short1, 'filter'):.3f} s against {best(short1_base, 'filter'):.3f} s)", "≥ 2.2×"),
+        (f"41: filter core, {threads} threads / one (criterion, this tree)", core2 / core1,
+         f"{core2 / core1:.2f}× (the machine gave {env.get('capacity', '?')}× for two processes)",
+         "≥ 1.7×"),
+        ("41: setup (`other`) of the run, one thread, N = 10⁴, T = 100", setup,
+         f"{100 * setup:.1f} % ({fastest.get('other', math.nan):.3f} s of "
+         f"{fastest.get('total', math.nan):.3f} s)", "≤ 10 %"),
+        (f"42: whole CLI to a file, {threads} threads, N = 10⁴, T = 100",
+         rate(short2) / rate(short2_base),
+         f"{rate(short2) / rate(short2_base):.2f}× ({fmt_rate(rate(short2))} against "
+         f"{fmt_rate(rate(short2_base))} rows/s)", "≥ 3×"),
+    ]
+    required = {"≥ 2.2×": lambda v: v >= 2.2, "≥ 1.7×": lambda v: v >= 1.7,
+                "≤ 10 %": lambda v: v <= 0.10, "≥ 3×": lambda v: v >= 3}
+    lines = [
+        "",
+        f"## Against `{sha}` (side by side)",
+        "",
+        f"`bench/run.sh {sha}` built `{sha}` beside this tree and ran every case with both",
+        "binaries alternately; each figure is the best run of each build (these machines differ",
+        "by 2–3× from day to day, so only a ratio taken side by side counts). Above 1 is faster.",
+        "",
+        "| target | measured | required | met |",
+        "|---|---|---|---|",
+    ]
+    for what, value, text, req in targets:
+        ok = math.isfinite(value) and required[req](value)
+        lines.append(f"| {what} | {text} | {req} | {'yes' if ok else '**no**'} |")
+    agree = env.get("against_compare")
+    if agree:
+        lines.append(
+            f"\nW's estimates of the two builds differ by at most {agree['max_abs']:.2e} absolute,"
+            f" {agree['max_rel']:.2e} relative, over {agree['rows']} rows.")
+    lines += [
+        "",
+        "| case | threads | baseline wall | wall | ratio | baseline filter | filter | ratio |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    def ratio(base_time, time, shortest):
+        # GNU time's wall clock has 10 ms steps and --timings 1 ms: no ratio of shorter runs.
+        if min(base_time, time) < shortest:
+            return "–"
+        return f"{base_time / time:.2f}×"
+
+    for name, runs in cases.items():
+        base = base_cases.get(name)
+        if not base:
+            continue
+        wall, base_wall = best(runs, "wall"), best(base, "wall")
+        row = (f"| {name} | {runs[0]['threads']} | {base_wall:.2f} s | {wall:.2f} s "
+               f"| {ratio(base_wall, wall, 0.1)} |")
+        if "filter" in runs[0] and "filter" in base[0]:
+            f, bf = best(runs, "filter"), best(base, "filter")
+            row += f" {bf:.3f} s | {f:.3f} s | {ratio(bf, f, 0.01)} |"
+        else:
+            row += " | | |"
+        lines.append(row)
+    lines.append("\n(– : a run too short for its clock: under 0.1 s of wall clock, or 0.01 s of"
+                 " filter time.)")
+    return lines, targets
 
 
 def med(runs, key):
@@ -229,6 +334,10 @@ def write(results, out_md):
         "|---|---|---|---|",
     ]
     lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
+    against = []
+    if env.get("against"):
+        section, against = against_section(cases, load(results, "baseline"), env)
+        lines += section
 
     lines += [
         "",
@@ -390,12 +499,14 @@ def write(results, out_md):
         f.write("\n".join(lines))
     for a, b, c, d in rows:
         print(f"{a:55} {b:45} {c:12} {d}")
+    for what, _, text, req in against:
+        print(f"{what:55} {text:45} {req}")
 
 
-def criterion_results(root):
-    """(benchmark, median ns, elements) of every criterion benchmark under target/criterion."""
+def criterion_results(target):
+    """(benchmark, median ns, elements) of every criterion benchmark under TARGET/criterion."""
     out = []
-    for dirpath, _, files in os.walk(os.path.join(root, "target", "criterion")):
+    for dirpath, _, files in os.walk(os.path.join(target, "criterion")):
         if os.path.basename(dirpath) == "new" and "estimates.json" in files:
             est = json.load(open(os.path.join(dirpath, "estimates.json")))
             bench = json.load(open(os.path.join(dirpath, "benchmark.json")))

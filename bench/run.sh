@@ -13,7 +13,15 @@
 #   - a `perf` profile of the remaining hot spots, when perf is installed.
 # Every case runs BENCH_RUNS times (default 3) and the medians are reported.
 #
-# Usage: bench/run.sh            (about 5 minutes on a quiet 2-core machine, plus the build)
+# With a baseline commit (`bench/run.sh f497e7e`), that commit is built too (a worktree in
+# $TMPDIR, its build under BENCH_WORK) and every command-line case and the criterion core run with both binaries
+# alternately (baseline, then this tree; BENCH_RUNS defaults to 5): BENCHMARKS.md then gives
+# each figure as a ratio against the baseline, the best run of each against the best of the
+# other, since these machines differ by 2–3× from day to day and only a ratio taken side by
+# side says anything; W's estimates of both builds are compared number by number.
+#
+# Usage: bench/run.sh [BASELINE]  (about 5 minutes on a quiet 2-core machine, plus the builds;
+#                                  twice that with a baseline)
 # Environment: BENCH_RUNS (3), BENCH_WORK (target/bench), BENCH_OUT (BENCHMARKS.md),
 #   BENCH_BASELINE_STEPS (12000; N = 100), BENCH_CRITERION=1 to also run `cargo bench` and
 #   list its results, BENCH_KEEP=1 to keep the generated data.
@@ -23,7 +31,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 WORK=${BENCH_WORK:-$ROOT/target/bench}
-RUNS=${BENCH_RUNS:-3}
+BASELINE=${1:-}
+if [ -n "$BASELINE" ]; then
+    BASELINE_SHA=$(git rev-parse --verify --quiet "$BASELINE^{commit}") || {
+        echo "error: baseline '$BASELINE' is not a commit of this repository" >&2
+        exit 2
+    }
+    RUNS=${BENCH_RUNS:-5}
+else
+    RUNS=${BENCH_RUNS:-3}
+fi
 OUT=${BENCH_OUT:-$ROOT/BENCHMARKS.md}
 BASELINE_N=100
 BASELINE_T=${BENCH_BASELINE_STEPS:-12000}
@@ -62,16 +79,33 @@ PY=$VENV/bin/python
 log "building (release, and the criterion benches)"
 cargo build --release --locked -q
 cargo bench --locked --bench filter --no-run -q 2>/dev/null
-BIN=$ROOT/target/release/sisfilt
+BIN=${CARGO_TARGET_DIR:-$ROOT/target}/release/sisfilt
+BASE_BIN=
+if [ -n "$BASELINE" ]; then
+    # Outside this repository: a package under it would count as a member of its workspace.
+    BASE_SRC=${TMPDIR:-/tmp}/sisfilt-bench-baseline
+    BASE_TARGET=$WORK/baseline-target
+    if [ "$(git -C "$BASE_SRC" rev-parse HEAD 2>/dev/null)" != "$BASELINE_SHA" ]; then
+        git worktree remove --force "$BASE_SRC" 2>/dev/null || rm -rf "$BASE_SRC"
+        git worktree prune
+        git worktree add --detach --force -q "$BASE_SRC" "$BASELINE_SHA"
+    fi
+    log "building the baseline ${BASELINE_SHA:0:7} (release, and its criterion benches)"
+    (cd "$BASE_SRC" && CARGO_TARGET_DIR=$BASE_TARGET cargo build --release --locked -q &&
+        CARGO_TARGET_DIR=$BASE_TARGET cargo bench --locked --bench filter --no-run -q 2>/dev/null)
+    BASE_BIN=$BASE_TARGET/release/sisfilt
+fi
 
 : >"$RESULTS"
 python3 - "$WORK/env.json" "$RUNS" "$THREADS" "$BASELINE_N" "$BASELINE_T" \
     "$(cut -d' ' -f1-3 /proc/loadavg)" "$(rustc --version)" \
-    "$(git rev-parse --short HEAD 2>/dev/null || echo unknown)$(git diff --quiet 2>/dev/null || echo '+changes')" <<'EOF'
+    "$(git rev-parse --short HEAD 2>/dev/null || echo unknown)$(git diff --quiet 2>/dev/null || echo '+changes')" \
+    "${BASELINE_SHA:0:7}" <<'EOF'
 import json, sys
-path, runs, threads, bn, bt, load, rustc, commit = sys.argv[1:]
+path, runs, threads, bn, bt, load, rustc, commit, against = sys.argv[1:]
 json.dump(dict(runs=int(runs), threads=int(threads), baseline_n=int(bn), baseline_t=int(bt),
-               loadavg=load, rustc=rustc, commit=commit), open(path, "w"))
+               loadavg=load, rustc=rustc, commit=commit, against=against or None),
+          open(path, "w"))
 EOF
 
 # How many cores the machine gives right now: two CPU-bound processes against one (2 on an
@@ -106,34 +140,45 @@ data() {
     rm -rf "${WORK:?}/$3"
     "$BIN" simulate "$WORK/$3.toml" --out "$WORK/$3" 2>/dev/null
 }
-# Runs `sisfilt ARGS…` BENCH_RUNS times under /usr/bin/time -v and records each run.
+# Runs `sisfilt ARGS…` BENCH_RUNS times under /usr/bin/time -v and records each run; with a
+# baseline, each run of this tree follows one of the baseline's (recorded as build "baseline").
 # usage: measure NAME THREADS ARGS…
 measure() {
-    local name=$1 threads=$2
+    local name=$1 threads=$2 build exe
     shift 2
     for _ in $(seq "$RUNS"); do
-        RAYON_NUM_THREADS=$threads /usr/bin/time -v -o "$WORK/time.txt" "$BIN" "$@" \
-            >/dev/null 2>"$WORK/stderr.txt" || {
-            cat "$WORK/stderr.txt" >&2
-            exit 1
-        }
-        python3 bench/report.py record "$RESULTS" "$name" "$threads" "$WORK/time.txt" "$WORK/stderr.txt"
+        for build in ${BASE_BIN:+baseline} current; do
+            exe=$BIN
+            [ "$build" = baseline ] && exe=$BASE_BIN
+            RAYON_NUM_THREADS=$threads /usr/bin/time -v -o "$WORK/time.txt" "$exe" "$@" \
+                >/dev/null 2>"$WORK/stderr.txt" || {
+                cat "$WORK/stderr.txt" >&2
+                exit 1
+            }
+            python3 bench/report.py record "$RESULTS" "$name" "$threads" "$WORK/time.txt" \
+                "$WORK/stderr.txt" "$build"
+        done
     done
 }
 
 # --- filter core (criterion, no I/O) -----------------------------------------------------
 log "filter core: cargo bench --bench filter -- core (one and $THREADS threads), $RUNS times"
-for _ in $(seq "$RUNS"); do
-    rm -rf "$ROOT/target/criterion/core"
-    cargo bench --locked --bench filter -q -- core --warm-up-time 2 --measurement-time 8 \
-        >/dev/null 2>&1
-    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
+# One criterion run of the core group. usage: core_run SOURCE_DIR TARGET_DIR KEY
+core_run() {
+    rm -rf "$2/criterion/core"
+    (cd "$1" && CARGO_TARGET_DIR=$2 cargo bench --locked --bench filter -q -- core \
+        --warm-up-time 2 --measurement-time 8 >/dev/null 2>&1)
+    python3 - "$WORK/env.json" "$3" "$(python3 bench/report.py criterion "$2")" <<'EOF'
 import json, sys
 env = json.load(open(sys.argv[1]))
-run = {name: [ns, elems] for name, ns, elems in json.loads(sys.argv[2]) if name.startswith("core/")}
-env.setdefault("core_runs", []).append(run)
+run = {name: [ns, elems] for name, ns, elems in json.loads(sys.argv[3]) if name.startswith("core/")}
+env.setdefault(sys.argv[2], []).append(run)
 json.dump(env, open(sys.argv[1], "w"))
 EOF
+}
+for _ in $(seq "$RUNS"); do
+    if [ -n "$BASE_BIN" ]; then core_run "$BASE_SRC" "$BASE_TARGET" baseline_core_runs; fi
+    core_run "$ROOT" "${CARGO_TARGET_DIR:-$ROOT/target}" core_runs
 done
 
 # --- workload W --------------------------------------------------------------------------
@@ -145,6 +190,17 @@ for threads in 1 "$THREADS"; do
     measure "W-$suffix" "$threads" estimate --meas "$WORK/W/measurements.csv" \
         --out "$WORK/W/estimates.csv" --timings
 done
+if [ -n "$BASE_BIN" ]; then
+    log "workload W: the estimates of both builds, number by number"
+    "$BASE_BIN" estimate --meas "$WORK/W/measurements.csv" --out "$WORK/W/baseline.csv" 2>/dev/null
+    agreement=$("$PY" bench/report.py compare "$WORK/W/estimates.csv" "$WORK/W/baseline.csv")
+    python3 - "$WORK/env.json" "$agreement" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1])); env["against_compare"] = json.loads(sys.argv[2])
+json.dump(env, open(sys.argv[1], "w"))
+EOF
+    rm -f "$WORK/W/baseline.csv"
+fi
 rm -f "$WORK/W/estimates.csv" "$WORK/W/truth.csv"
 # Smoothing stores the forward pass: peak RSS against docs/theory.md §9's estimate (`sisfilt check`).
 log "workload W: estimate --smooth (distributed smoother)"
@@ -161,6 +217,17 @@ if m:
     env["smooth_estimate_bytes"] = float(m.group(1)) * scale
 json.dump(env, open(sys.argv[1], "w"))
 EOF
+
+# --- the chain of issues 41 and 42 (N = 10⁴, T = 100): setup share and whole-CLI rows/s ---
+log "workload W, T = 100: simulate"
+data 10000 100 W100
+for threads in 1 "$THREADS"; do
+    suffix=$([ "$threads" = 1 ] && echo 1thread || echo "${threads}threads")
+    log "workload W, T = 100: estimate, $threads thread(s)"
+    measure "W100-$suffix" "$threads" estimate --meas "$WORK/W100/measurements.csv" \
+        --out "$WORK/W100/estimates.csv" --timings
+done
+rm -rf "${WORK:?}/W100"
 
 # --- peak memory against T ---------------------------------------------------------------
 for steps in 100 10000; do
@@ -235,7 +302,7 @@ fi
 if [ "${BENCH_CRITERION:-0}" = 1 ]; then
     log "criterion: cargo bench --bench filter"
     cargo bench --locked --bench filter -q >/dev/null 2>&1
-    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "$ROOT")" <<'EOF'
+    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "${CARGO_TARGET_DIR:-$ROOT/target}")" <<'EOF'
 import json, sys
 env = json.load(open(sys.argv[1])); env["criterion"] = json.loads(sys.argv[2])
 json.dump(env, open(sys.argv[1], "w"))
