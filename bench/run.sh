@@ -161,6 +161,30 @@ measure() {
     done
 }
 
+# How far two estimates files differ (report.py compare), into env.json under KEY.
+# usage: agree KEY A.csv B.csv
+agree() {
+    local agreement
+    agreement=$("$PY" bench/report.py compare "$2" "$3")
+    python3 - "$WORK/env.json" "$1" "$agreement" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1])); env[sys.argv[2]] = json.loads(sys.argv[3])
+json.dump(env, open(sys.argv[1], "w"))
+EOF
+}
+
+# `estimate` on the data of NAME, to a file, with one thread and with all cores: the cases
+# NAME-1thread and NAME-<cores>threads. usage: whole_cli NAME
+whole_cli() {
+    local threads suffix
+    for threads in 1 "$THREADS"; do
+        suffix=$([ "$threads" = 1 ] && echo 1thread || echo "${threads}threads")
+        log "$1: estimate, $threads thread(s)"
+        measure "$1-$suffix" "$threads" estimate --meas "$WORK/$1/measurements.csv" \
+            --out "$WORK/$1/estimates.csv" --timings
+    done
+}
+
 # --- filter core (criterion, no I/O) -----------------------------------------------------
 log "filter core: cargo bench --bench filter -- core (one and $THREADS threads), $RUNS times"
 # One criterion run of the core group. usage: core_run SOURCE_DIR TARGET_DIR KEY
@@ -184,21 +208,11 @@ done
 # --- workload W --------------------------------------------------------------------------
 log "workload W: simulate N = 10000, T = 1000"
 data 10000 1000 W
-for threads in 1 "$THREADS"; do
-    suffix=$([ "$threads" = 1 ] && echo 1thread || echo "${threads}threads")
-    log "workload W: estimate, $threads thread(s)"
-    measure "W-$suffix" "$threads" estimate --meas "$WORK/W/measurements.csv" \
-        --out "$WORK/W/estimates.csv" --timings
-done
+whole_cli W
 if [ -n "$BASE_BIN" ]; then
     log "workload W: the estimates of both builds, number by number"
     "$BASE_BIN" estimate --meas "$WORK/W/measurements.csv" --out "$WORK/W/baseline.csv" 2>/dev/null
-    agreement=$("$PY" bench/report.py compare "$WORK/W/estimates.csv" "$WORK/W/baseline.csv")
-    python3 - "$WORK/env.json" "$agreement" <<'EOF'
-import json, sys
-env = json.load(open(sys.argv[1])); env["against_compare"] = json.loads(sys.argv[2])
-json.dump(env, open(sys.argv[1], "w"))
-EOF
+    agree against_compare "$WORK/W/estimates.csv" "$WORK/W/baseline.csv"
     rm -f "$WORK/W/baseline.csv"
 fi
 rm -f "$WORK/W/estimates.csv" "$WORK/W/truth.csv"
@@ -221,12 +235,7 @@ EOF
 # --- the chain of issues 41 and 42 (N = 10⁴, T = 100): setup share and whole-CLI rows/s ---
 log "workload W, T = 100: simulate"
 data 10000 100 W100
-for threads in 1 "$THREADS"; do
-    suffix=$([ "$threads" = 1 ] && echo 1thread || echo "${threads}threads")
-    log "workload W, T = 100: estimate, $threads thread(s)"
-    measure "W100-$suffix" "$threads" estimate --meas "$WORK/W100/measurements.csv" \
-        --out "$WORK/W100/estimates.csv" --timings
-done
+whole_cli W100
 rm -rf "${WORK:?}/W100"
 
 # --- peak memory against T ---------------------------------------------------------------
@@ -276,12 +285,7 @@ log "baseline: numpy (one run; about a minute)"
 /usr/bin/time -v -o "$WORK/time.txt" "$PY" bench/baseline.py "$B.toml" "$B/measurements.csv" \
     "$B/inputs.csv" "$B/numpy.csv" 2>"$WORK/stderr.txt"
 python3 bench/report.py record "$RESULTS" baseline-python 1 "$WORK/time.txt" "$WORK/stderr.txt"
-agreement=$("$PY" bench/report.py compare "$B/sisfilt.csv" "$B/numpy.csv")
-python3 - "$WORK/env.json" "$agreement" <<'EOF'
-import json, sys
-env = json.load(open(sys.argv[1])); env["baseline_compare"] = json.loads(sys.argv[2])
-json.dump(env, open(sys.argv[1], "w"))
-EOF
+agree baseline_compare "$B/sisfilt.csv" "$B/numpy.csv"
 rm -rf "${WORK:?}/base"
 
 # --- profile -----------------------------------------------------------------------------
