@@ -167,7 +167,6 @@ impl JointSmoother {
         xs[steps - 1].copy_from_slice(&x_filt[steps - 1]);
         let mut lam_s = posterior[steps - 1].clone();
         let mut ws = Backward::new(model, k);
-        let precision_loading = filter.loading_rule();
         let mut gains = Vec::new();
         // The band of P(t|T) is written into a scratch band that then trades places with
         // Λ⁻(t+1), which is no longer needed: after the pass, prior[t] holds P(t−1|T) for
@@ -197,7 +196,7 @@ impl JointSmoother {
                     a_eff: Arc::clone(&a_eff[idx]),
                 });
             }
-            ws.smoothed_precision(&band, precision_loading, &mut lam_s)
+            ws.smoothed_precision(&band, filter.loading_rule(), &mut lam_s)
                 .map_err(|e| smoother_error(t, loading, k, e))?;
             std::mem::swap(&mut band, &mut prior[idx + 1]);
         }

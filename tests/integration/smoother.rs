@@ -81,6 +81,70 @@ fn dense_step(model: &Model, t: usize, x: &DVector<f64>, u: &DVector<f64>) -> DV
     out
 }
 
+/// The block-diagonal matrix of `blocks` (all of one shape).
+fn block_diag(blocks: impl ExactSizeIterator<Item = DMatrix<f64>>) -> DMatrix<f64> {
+    let count = blocks.len();
+    let mut out = DMatrix::zeros(0, 0);
+    for (i, block) in blocks.enumerate() {
+        let (r, c) = block.shape();
+        if i == 0 {
+            out = DMatrix::zeros(r * count, c * count);
+        }
+        out.view_mut((i * r, i * c), (r, c)).copy_from(&block);
+    }
+    out
+}
+
+/// The lifted model without measurements, per step `t = 1..T` (index `t − 1`): `A_eff(t)`
+/// and the prior moments of `X(t)` (its mean and covariance), from the dense chain solve.
+struct LiftedPrior {
+    a: Vec<DMatrix<f64>>,
+    mean: Vec<DVector<f64>>,
+    cov: Vec<DMatrix<f64>>,
+}
+
+impl LiftedPrior {
+    fn new(model: &Model, u: &[Vec<f64>]) -> Self {
+        let (n, m, big_n) = (model.dims.n, model.dims.m, model.subsystems);
+        let size = big_n * n;
+        let steps = u.len();
+        let unit = |k: usize, len: usize| DVector::from_fn(len, |r, _| f64::from(r == k));
+        // A_eff(t) column by column.
+        let a: Vec<DMatrix<f64>> = (1..=steps)
+            .map(|t| {
+                let zero_u = DVector::zeros(big_n * m);
+                DMatrix::from_fn(size, size, |r, c| {
+                    dense_step(model, t, &unit(c, size), &zero_u)[r]
+                })
+            })
+            .collect();
+        let mut mean = vec![DVector::from_fn(size, |r, _| model.initial_mean[r % n])];
+        let mut cov = vec![block_diag((0..big_n).map(|_| model.initial_cov.clone()))];
+        for t in 1..steps {
+            let uu = DVector::from_column_slice(&u[t - 1]);
+            mean.push(dense_step(model, t, &mean[t - 1], &uu));
+            cov.push(&a[t - 1] * &cov[t - 1] * a[t - 1].transpose() + q_big(model, t));
+        }
+        Self { a, mean, cov }
+    }
+
+    /// The noise of subsystem `i`'s measurement (0-based) at step index `k` in the linear
+    /// model of unknown dropouts: `M + p(1−p) J S_ii Jᵀ` with the exact moment
+    /// `S_ii = P_ii + m_i m_iᵀ`.
+    fn nahi_noise(&self, model: &Model, k: usize, i: usize) -> DMatrix<f64> {
+        let n = model.dims.n;
+        let (prm, p) = (model.params(k + 1, i + 1), model.p(k + 1, i + 1));
+        let mi = self.mean[k].rows(i * n, n);
+        let s = self.cov[k].view((i * n, i * n), (n, n)) + mi * mi.transpose();
+        &prm.M + (&prm.J * s * prm.J.transpose()) * (p * (1.0 - p))
+    }
+}
+
+/// `blkdiag(Q)` at time `t`.
+fn q_big(model: &Model, t: usize) -> DMatrix<f64> {
+    block_diag((0..model.subsystems).map(|i| model.params(t, i + 1).Q.clone()))
+}
+
 /// The batch estimate: `E[X | Y]` and the diagonal blocks of `Cov[X | Y]` for every step, by
 /// Gaussian conditioning on the moments of the lifted linear model (unknown dropouts: the
 /// linear model `Y = 𝒫 J X + R U + ν` of docs/theory.md §9; known dropouts: the observed rows).
@@ -88,40 +152,9 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
     let (n, q, m, big_n) = (model.dims.n, model.dims.q, model.dims.m, model.subsystems);
     let size = big_n * n;
     let steps = y.len();
-    // A_eff(t) and U_eff(t) column by column.
-    let mut a = Vec::new();
-    let mut b = Vec::new();
-    for t in 1..=steps {
-        let zero_u = DVector::zeros(big_n * m);
-        a.push(DMatrix::from_fn(size, size, |r, c| {
-            let mut e = DVector::zeros(size);
-            e[c] = 1.0;
-            dense_step(model, t, &e, &zero_u)[r]
-        }));
-        b.push(DMatrix::from_fn(size, big_n * m, |r, c| {
-            let mut e = DVector::zeros(big_n * m);
-            e[c] = 1.0;
-            dense_step(model, t, &DVector::zeros(size), &e)[r]
-        }));
-    }
     // Means and covariances of X(t); cross-covariances Cov(X(t), X(s)) = Φ(t, s) P(s).
-    let mut mean = vec![DVector::from_fn(size, |r, _| model.initial_mean[r % n])];
-    let mut cov = vec![DMatrix::zeros(size, size)];
-    for i in 0..big_n {
-        cov[0]
-            .view_mut((i * n, i * n), (n, n))
-            .copy_from(&model.initial_cov);
-    }
-    for t in 1..steps {
-        let uu = DVector::from_column_slice(&u[t - 1]);
-        mean.push(&a[t - 1] * &mean[t - 1] + &b[t - 1] * uu);
-        let mut qb = DMatrix::zeros(size, size);
-        for i in 0..big_n {
-            qb.view_mut((i * n, i * n), (n, n))
-                .copy_from(&model.params(t, i + 1).Q);
-        }
-        cov.push(&a[t - 1] * &cov[t - 1] * a[t - 1].transpose() + qb);
-    }
+    let prior = LiftedPrior::new(model, &u[..steps]);
+    let (a, mean, cov) = (&prior.a, &prior.mean, &prior.cov);
     let total = steps * size;
     let mut sxx = DMatrix::zeros(total, total);
     for s in 0..steps {
@@ -159,14 +192,11 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
         yv[k] = y[t][r] - ru;
         for (k2, &(t2, r2)) in rows.iter().enumerate() {
             if t2 == t && r2 / q == i {
-                let mut v = prm.M[(row, r2 % q)];
-                if !known {
-                    // p(1−p) J S_ii Jᵀ with the exact moment S_ii = P_ii + m_i m_iᵀ.
-                    let mi = mean[t].rows(i * n, n);
-                    let s = cov[t].view((i * n, i * n), (n, n)) + mi * mi.transpose();
-                    v += p * (1.0 - p) * (prm.J.row(row) * s * prm.J.row(r2 % q).transpose())[0];
-                }
-                noise[(k, k2)] = v;
+                noise[(k, k2)] = if known {
+                    prm.M[(row, r2 % q)]
+                } else {
+                    prior.nahi_noise(model, t, i)[(row, r2 % q)]
+                };
             }
         }
     }
@@ -205,47 +235,35 @@ fn batch_estimate(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>], known: bool) ->
 /// measurement noise `M + p(1−p) J S_ii Jᵀ` with the exact prior moment, as in
 /// [`batch_estimate`]); its covariances do not depend on `y`.
 fn largest_prediction_condition(model: &Model, u: &[Vec<f64>]) -> f64 {
-    let (n, q, m, big_n) = (model.dims.n, model.dims.q, model.dims.m, model.subsystems);
-    let size = big_n * n;
-    let unit = |k: usize, len: usize| DVector::from_fn(len, |r, _| f64::from(r == k));
-    let blocks = |f: &dyn Fn(usize) -> DMatrix<f64>, rows: usize| {
-        let mut out = DMatrix::zeros(big_n * rows, size);
-        for i in 0..big_n {
-            out.view_mut((i * rows, i * n), (rows, n)).copy_from(&f(i));
-        }
-        out
-    };
-    let mut mean = DVector::from_fn(size, |r, _| model.initial_mean[r % n]);
-    let mut prior = blocks(&|_| model.initial_cov.clone(), n);
-    let mut pred = prior.clone();
+    let big_n = model.subsystems;
+    let prior = LiftedPrior::new(model, u);
+    let mut pred = prior.cov[0].clone();
     let mut largest = 0.0_f64;
     for t in 1..u.len() {
-        let h = blocks(&|i| model.params(t, i + 1).J.clone() * model.p(t, i + 1), q);
-        let mut noise = DMatrix::zeros(big_n * q, big_n * q);
-        for i in 0..big_n {
-            let (prm, p) = (model.params(t, i + 1), model.p(t, i + 1));
-            let mi = mean.rows(i * n, n);
-            let s = prior.view((i * n, i * n), (n, n)) + mi * mi.transpose();
-            let r = &prm.M + (&prm.J * s * prm.J.transpose()) * (p * (1.0 - p));
-            noise.view_mut((i * q, i * q), (q, q)).copy_from(&r);
-        }
+        let h = block_diag((0..big_n).map(|i| &model.params(t, i + 1).J * model.p(t, i + 1)));
+        let noise = block_diag((0..big_n).map(|i| prior.nahi_noise(model, t - 1, i)));
         let gain_tr = (&h * &pred * h.transpose() + noise)
             .cholesky()
             .unwrap()
             .solve(&(&h * &pred));
         let filt = &pred - (&h * &pred).transpose() * gain_tr;
-        let zero_u = DVector::zeros(big_n * m);
-        let a = DMatrix::from_fn(size, size, |r, c| {
-            dense_step(model, t, &unit(c, size), &zero_u)[r]
-        });
-        let q_big = blocks(&|i| model.params(t, i + 1).Q.clone(), n);
-        pred = &a * filt * a.transpose() + &q_big;
-        mean = dense_step(model, t, &mean, &DVector::from_column_slice(&u[t - 1]));
-        prior = &a * prior * a.transpose() + q_big;
+        let a = &prior.a[t - 1];
+        pred = a * filt * a.transpose() + q_big(model, t);
         let eig = pred.clone().symmetric_eigen().eigenvalues;
         largest = largest.max(eig.max() / eig.min().max(0.0));
     }
     largest
+}
+
+/// The smoothed estimates are the true states and their covariances zero (to 1e−12): a
+/// state known exactly with `Q = 0`.
+fn assert_truth(smoothed: &Smoothed, run: &crate::common::Run) {
+    for (t, (xs, x)) in smoothed.x.iter().zip(&run.x).enumerate() {
+        for (a, b) in xs.iter().zip(x) {
+            assert!((a - b).abs() < 1e-12, "t = {}: {a} against {b}", t + 1);
+        }
+    }
+    assert!(smoothed.p.iter().flatten().all(|v| v.abs() < 1e-12));
 }
 
 fn lose_some(run: &crate::common::Run, q: usize) -> Vec<Vec<f64>> {
@@ -751,12 +769,7 @@ fn centralized_smoother_takes_the_pseudo_inverse_of_a_singular_prediction() {
         &run.y,
         &run.u,
     );
-    for (t, (xs, x)) in smoothed.x.iter().zip(&run.x).enumerate() {
-        for (a, b) in xs.iter().zip(x) {
-            assert!((a - b).abs() < 1e-12, "t = {}: {a} against {b}", t + 1);
-        }
-    }
-    assert!(smoothed.p.iter().flatten().all(|v| v.abs() < 1e-12));
+    assert_truth(&smoothed, &run);
 }
 
 /// The distributed smoother on a singular `T(t+1)` (one subsystem of [`singular_prediction`],
@@ -790,12 +803,7 @@ fn distributed_smoother_runs_on_a_singular_prediction() {
     ));
     let run = simulate_run(&known, 7);
     let smoothed = smooth(distributed(&known), &run.y, &run.u);
-    for (t, (xs, x)) in smoothed.x.iter().zip(&run.x).enumerate() {
-        for (a, b) in xs.iter().zip(x) {
-            assert!((a - b).abs() < 1e-12, "t = {}: {a} against {b}", t + 1);
-        }
-    }
-    assert!(smoothed.p.iter().flatten().all(|v| v.abs() < 1e-12));
+    assert_truth(&smoothed, &run);
 }
 
 /// `evaluate` runs the covariance pass of the centralized and the joint smoother once
