@@ -3,8 +3,15 @@
 //! workspaces) and [`FixedKernel`] (compile-time sizes `n ≤ 4`, `q ≤ 2`, stack-allocated
 //! `SMatrix`), which removes the per-call overhead of dynamic sizes for the common cases.
 //! Both compute exactly the formulas of [`crate::filter::nahi`] (docs/theory.md §4).
+//!
+//! [`FixedKernel`] also updates and predicts [`LANES`] subsystems at once
+//! ([`LocalKernel::update_lanes`], [`LocalKernel::propagate_lanes`]): the same nalgebra
+//! expressions over a scalar that holds one value per subsystem (simba's `WideF64x4`), so
+//! each lane gets the bits the one-subsystem path gives it, while the four independent chains
+//! of arithmetic run side by side in SIMD registers instead of one after another.
 
-use nalgebra::{Cholesky, Const, DMatrix, SMatrix, SVector};
+use nalgebra::{Cholesky, Const, DMatrix, SMatrix, SVector, SimdBool, SimdRealField, SimdValue};
+use simba::simd::WideF64x4;
 
 use crate::filter::nahi::{self, Measurement, Workspace};
 use crate::linalg::symmetrize;
@@ -78,9 +85,57 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
     fn mean_update(gain: &Self::Gain, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]);
     /// `out = A X Aᵀ + Q` (or without `Q`), symmetrised.
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]);
-    /// `out = A x` (overwrites `out`).
-    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]);
+    /// [`LocalKernel::update`] of [`LANES`] consecutive subsystems of parameter set `set`,
+    /// every row of their measurements in the data: `data[l]` and the `l`-th block of `s`,
+    /// `x_pred`, `t_pred`, `x_filt`, `p_filt` and `log_densities` are subsystem `l`'s, each
+    /// given the bits [`LocalKernel::update`] gives it. Returns `false` when some subsystem's
+    /// `Σ` is not positive definite (the outputs are then not to be read). By default one
+    /// subsystem after the other.
+    #[allow(clippy::too_many_arguments)]
+    fn update_lanes(
+        &mut self,
+        set: u32,
+        data: &[LocalData; LANES],
+        s: &[f64],
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+        log_densities: &mut [f64],
+    ) -> bool {
+        let (n, nn) = (x_pred.len() / LANES, t_pred.len() / LANES);
+        let s_len = s.len() / LANES;
+        for (l, data) in data.iter().enumerate() {
+            let Some(log_density) = self.update(
+                set,
+                data,
+                &s[l * s_len..(l + 1) * s_len],
+                &x_pred[l * n..(l + 1) * n],
+                &t_pred[l * nn..(l + 1) * nn],
+                &mut x_filt[l * n..(l + 1) * n],
+                &mut p_filt[l * nn..(l + 1) * nn],
+            ) else {
+                return false;
+            };
+            log_densities[l] = log_density;
+        }
+        true
+    }
+    /// [`LocalKernel::propagate`] of [`LANES`] consecutive subsystems of parameter set `set`
+    /// (`x` and `out` hold their blocks one after the other). By default one after the other.
+    fn propagate_lanes(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]) {
+        let nn = x.len() / LANES;
+        for (x, out) in x.chunks_exact(nn).zip(out.chunks_exact_mut(nn)) {
+            self.propagate(set, with_q, x, out);
+        }
+    }
 }
+
+/// Subsystems [`LocalKernel::update_lanes`] and [`LocalKernel::propagate_lanes`] take at once.
+pub const LANES: usize = 4;
+
+/// One value per lane.
+type Lanes = WideF64x4;
 
 /// Any size: nalgebra's dynamic matrices and one reused [`Workspace`].
 #[derive(Clone)]
@@ -230,22 +285,76 @@ impl LocalKernel for DynamicKernel {
         let prm = &self.sets[set as usize];
         nahi::propagate_cov(&prm.A, x, with_q.then_some(&prm.Q), out, &mut self.ws);
     }
+}
 
-    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]) {
-        out.fill(0.0);
-        crate::linalg::mat_vec_add(out, &self.sets[set as usize].A, x);
+/// The matrices of one parameter set at compile-time sizes, over the scalar `T` (`f64`, or
+/// [`Lanes`] with the same value in every lane).
+#[derive(Clone)]
+struct FixedMatrices<T: SimdRealField + Copy, const N: usize, const Q: usize> {
+    a: SMatrix<T, N, N>,
+    a_tr: SMatrix<T, N, N>,
+    j: SMatrix<T, Q, N>,
+    j_tr: SMatrix<T, N, Q>,
+    m: SMatrix<T, Q, Q>,
+    q: SMatrix<T, N, N>,
+}
+
+impl<const N: usize, const Q: usize> FixedMatrices<f64, N, Q> {
+    fn of(p: &Params) -> Self {
+        Self {
+            a: fixed(&p.A),
+            a_tr: fixed::<N, N>(&p.A).transpose(),
+            j: fixed(&p.J),
+            j_tr: fixed::<Q, N>(&p.J).transpose(),
+            m: fixed(&p.M),
+            q: fixed(&p.Q),
+        }
+    }
+
+    /// The same matrices in every lane.
+    fn splat(&self) -> FixedMatrices<Lanes, N, Q> {
+        FixedMatrices {
+            a: self.a.map(Lanes::splat),
+            a_tr: self.a_tr.map(Lanes::splat),
+            j: self.j.map(Lanes::splat),
+            j_tr: self.j_tr.map(Lanes::splat),
+            m: self.m.map(Lanes::splat),
+            q: self.q.map(Lanes::splat),
+        }
     }
 }
 
-/// The matrices of one parameter set at compile-time sizes.
+impl<T: SimdRealField + Copy, const N: usize, const Q: usize> FixedMatrices<T, N, Q> {
+    /// `R_eff = M + p(1−p) J S Jᵀ`; `M` alone where `p(1−p) = 0`.
+    #[inline(always)]
+    fn reff(&self, p: T, s: &SMatrix<T, N, N>) -> SMatrix<T, Q, Q> {
+        let weight = p * (T::one() - p);
+        let zero = T::zero();
+        if weight.simd_ne(zero).none() {
+            return self.m;
+        }
+        let added = self.m + self.j * s * self.j_tr * weight;
+        // Per lane, so that a lane with p(1−p) = 0 keeps M's own bits.
+        added.zip_map(&self.m, |added, m| added.select(weight.simd_ne(zero), m))
+    }
+
+    /// `A X Aᵀ + Q` (or without `Q`), symmetrised.
+    #[inline(always)]
+    fn propagate(&self, with_q: bool, x: &SMatrix<T, N, N>) -> SMatrix<T, N, N> {
+        let mut r = self.a * x * self.a_tr;
+        if with_q {
+            r += self.q;
+        }
+        symmetrize(&mut r);
+        r
+    }
+}
+
+/// The matrices of one parameter set at compile-time sizes, for one subsystem and for lanes.
 #[derive(Clone)]
 struct FixedSet<const N: usize, const Q: usize> {
-    a: SMatrix<f64, N, N>,
-    a_tr: SMatrix<f64, N, N>,
-    j: SMatrix<f64, Q, N>,
-    j_tr: SMatrix<f64, N, Q>,
-    m: SMatrix<f64, Q, Q>,
-    q: SMatrix<f64, N, N>,
+    one: FixedMatrices<f64, N, Q>,
+    lanes: FixedMatrices<Lanes, N, Q>,
     /// The lower Cholesky factor of `M`, once per parameter set (`None` if `M` is not
     /// positive definite, which a loaded model rules out).
     m_factor: Option<SMatrix<f64, Q, Q>>,
@@ -276,53 +385,67 @@ fn log_gaussian<const Q: usize>(l: &SMatrix<f64, Q, Q>, v: &SVector<f64, Q>) -> 
 }
 
 /// The gain `L`, the Joseph-form `P(t|t)` and the Cholesky factor of `Σ`.
-type GainAndFactor<const N: usize, const Q: usize> = (
-    SMatrix<f64, N, Q>,
-    SMatrix<f64, N, N>,
-    Cholesky<f64, Const<Q>>,
-);
+type GainAndFactor<T, const N: usize, const Q: usize> =
+    (SMatrix<T, N, Q>, SMatrix<T, N, N>, Cholesky<T, Const<Q>>);
 
-impl<const N: usize, const Q: usize> FixedKernel<N, Q> {
-    /// Gain and Joseph-form `P(t|t)` for the measurement model `H`, `R_eff`.
-    #[inline(always)]
-    fn gain(
-        h: &SMatrix<f64, Q, N>,
-        reff: &SMatrix<f64, Q, Q>,
-        t: &SMatrix<f64, N, N>,
-    ) -> Option<GainAndFactor<N, Q>> {
-        let ht = h * t;
-        let chol = (ht * h.transpose() + reff).cholesky()?;
-        let l = chol.solve(&ht).transpose(); // W = Σ⁻¹ H T, L = Wᵀ
-        let f = SMatrix::<f64, N, N>::identity() - l * h;
-        let mut pf = f * t * f.transpose() + l * reff * l.transpose();
-        symmetrize(&mut pf);
-        Some((l, pf, chol))
+/// Gain and Joseph-form `P(t|t)` for the measurement model `H`, `R_eff`; `None` when `Σ` is
+/// not positive definite (in some lane). The factor is nalgebra's `Cholesky::new`, step for
+/// step, with its check of each pivot made on the factor's diagonal afterwards, so that one
+/// function serves `f64` and lanes.
+#[inline(always)]
+fn gain<T: SimdRealField + Copy, const N: usize, const Q: usize>(
+    h: &SMatrix<T, Q, N>,
+    reff: &SMatrix<T, Q, Q>,
+    t: &SMatrix<T, N, N>,
+) -> Option<GainAndFactor<T, N, Q>> {
+    let ht = h * t;
+    let chol = Cholesky::new_unchecked(ht * h.transpose() + reff);
+    let zero = T::zero();
+    // A pivot that is zero, negative or NaN leaves a diagonal element that is not > 0.
+    if !(0..Q).all(|k| chol.l_dirty()[(k, k)].simd_gt(zero).all()) {
+        return None;
     }
+    let l = chol.solve(&ht).transpose(); // W = Σ⁻¹ H T, L = Wᵀ
+    let f = SMatrix::<T, N, N>::identity() - l * h;
+    let mut pf = f * t * f.transpose() + l * reff * l.transpose();
+    symmetrize(&mut pf);
+    Some((l, pf, chol))
+}
 
-    /// `R_eff = M + p(1−p) J S Jᵀ`.
-    #[inline(always)]
-    fn reff(set: &FixedSet<N, Q>, p: f64, s: &[f64]) -> SMatrix<f64, Q, Q> {
-        let mut reff = set.m;
-        if p * (1.0 - p) != 0.0 {
-            let s = SMatrix::<f64, N, N>::from_column_slice(s);
-            reff += set.j * s * set.j_tr * (p * (1.0 - p));
+/// `x̂ + L (y − R u − H x̂)`, the innovation `y − R u − H x̂` beside it.
+#[inline(always)]
+fn mean<T: SimdRealField + Copy, const N: usize, const Q: usize>(
+    h: &SMatrix<T, Q, N>,
+    l: &SMatrix<T, N, Q>,
+    measured: SVector<T, Q>,
+    x: &SVector<T, N>,
+) -> (SVector<T, N>, SVector<T, Q>) {
+    let innov = measured - h * x;
+    (x + l * innov, innov)
+}
+
+/// The lanes of `LANES` column-major `R × C` blocks stored one after the other.
+#[inline(always)]
+fn gather<const R: usize, const C: usize>(blocks: &[f64]) -> SMatrix<Lanes, R, C> {
+    SMatrix::from_fn(|r, c| Lanes::from(std::array::from_fn(|l| blocks[l * R * C + c * R + r])))
+}
+
+/// The inverse of [`gather`].
+#[inline(always)]
+fn scatter<const R: usize, const C: usize>(m: &SMatrix<Lanes, R, C>, blocks: &mut [f64]) {
+    for c in 0..C {
+        for r in 0..R {
+            let values: [f64; LANES] = m[(r, c)].into();
+            for (l, v) in values.into_iter().enumerate() {
+                blocks[l * R * C + c * R + r] = v;
+            }
         }
-        reff
     }
+}
 
-    #[inline(always)]
-    fn mean(
-        h: &SMatrix<f64, Q, N>,
-        l: &SMatrix<f64, N, Q>,
-        data: &LocalData,
-        x_pred: &[f64],
-        x_filt: &mut [f64],
-    ) {
-        let x = SVector::<f64, N>::from_column_slice(x_pred);
-        let innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
-        let xf = x + l * innov;
-        x_filt.copy_from_slice(xf.as_slice());
-    }
+/// Lane `l` of a matrix of lanes.
+fn lane<const R: usize, const C: usize>(m: &SMatrix<Lanes, R, C>, l: usize) -> SMatrix<f64, R, C> {
+    m.map(|v| v.extract(l))
 }
 
 impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
@@ -334,14 +457,13 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
             sets: model
                 .param_sets()
                 .iter()
-                .map(|p| FixedSet {
-                    a: fixed(&p.A),
-                    a_tr: fixed::<N, N>(&p.A).transpose(),
-                    j: fixed(&p.J),
-                    j_tr: fixed::<Q, N>(&p.J).transpose(),
-                    m: fixed(&p.M),
-                    q: fixed(&p.Q),
-                    m_factor: fixed::<Q, Q>(&p.M).cholesky().map(|c| c.unpack()),
+                .map(|p| {
+                    let one = FixedMatrices::<f64, N, Q>::of(p);
+                    FixedSet {
+                        lanes: one.splat(),
+                        m_factor: one.m.cholesky().map(|c| c.unpack()),
+                        one,
+                    }
                 })
                 .collect::<Vec<_>>()
                 .into(),
@@ -366,14 +488,17 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         x_filt: &mut [f64],
         p_filt: &mut [f64],
     ) -> Option<f64> {
-        let prm = &self.sets[set as usize];
+        let prm = &self.sets[set as usize].one;
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
+        let x = SVector::<f64, N>::from_column_slice(x_pred);
+        let measured = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
         let complete = !data.y.iter().any(|v| v.is_nan());
         if !data.known && complete {
             let h = prm.j * data.p;
-            let reff = Self::reff(prm, data.p, s);
-            let (l, pf, _) = Self::gain(&h, &reff, &t)?;
-            Self::mean(&h, &l, data, x_pred, x_filt);
+            let reff = prm.reff(data.p, &SMatrix::from_column_slice(s));
+            let (l, pf, _) = gain(&h, &reff, &t)?;
+            let (xf, _) = mean(&h, &l, measured, &x);
+            x_filt.copy_from_slice(xf.as_slice());
             p_filt.copy_from_slice(pf.as_slice());
             return Some(0.0);
         }
@@ -383,24 +508,67 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let mut reff = if data.known {
             prm.m
         } else {
-            Self::reff(prm, data.p, s)
+            prm.reff(data.p, &SMatrix::from_column_slice(s))
         };
-        let x = SVector::<f64, N>::from_column_slice(x_pred);
-        let mut innov = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]) - h * x;
+        let mut measured = measured;
         let mut dropped = 0;
         for k in nahi::missing_rows(data.y) {
             h.row_mut(k).fill(0.0);
             nahi::remove_row(&mut reff, k);
-            innov[k] = 0.0;
+            measured[k] = 0.0;
             dropped += 1;
         }
-        let (l, pf, chol) = Self::gain(&h, &reff, &t)?;
-        let xf = x + l * innov;
+        let (l, pf, chol) = gain(&h, &reff, &t)?;
+        let (xf, innov) = mean(&h, &l, measured, &x);
         x_filt.copy_from_slice(xf.as_slice());
         p_filt.copy_from_slice(pf.as_slice());
-        // log N(ỹ; 0, Σ) over the received rows: a dropped row adds only −½ log 2π, taken
-        // back (as in nahi::kalman_update).
+        // log N(ỹ; 0, Σ) over the received rows (a dropped row's ỹ_k is 0 − 0·x̂ = 0): it
+        // adds only −½ log 2π, taken back (as in nahi::kalman_update).
         Some(log_gaussian(chol.l_dirty(), &innov)? + 0.5 * dropped as f64 * nahi::LN_2PI)
+    }
+
+    fn update_lanes(
+        &mut self,
+        set: u32,
+        data: &[LocalData; LANES],
+        s: &[f64],
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+        log_densities: &mut [f64],
+    ) -> bool {
+        let prm = &self.sets[set as usize].lanes;
+        let known = data[0].known;
+        let p = Lanes::from(data.each_ref().map(|d| d.p));
+        let t = gather::<N, N>(t_pred);
+        let x = gather::<N, 1>(x_pred);
+        let measured = SVector::<Lanes, Q>::from_fn(|k, _| {
+            Lanes::from(data.each_ref().map(|d| d.y[k] - d.ru[k]))
+        });
+        let h = prm.j * p;
+        let reff = if known {
+            prm.m
+        } else {
+            prm.reff(p, &gather::<N, N>(s))
+        };
+        let Some((l, pf, chol)) = gain(&h, &reff, &t) else {
+            return false;
+        };
+        let (xf, innov) = mean(&h, &l, measured, &x);
+        scatter(&xf, x_filt);
+        scatter(&pf, p_filt);
+        for (l, log_density) in log_densities.iter_mut().enumerate() {
+            *log_density = if known {
+                let Some(density) = log_gaussian(&lane(chol.l_dirty(), l), &lane(&innov, l)) else {
+                    return false;
+                };
+                density
+            } else {
+                0.0
+            };
+        }
+        true
     }
 
     fn covariance_update(
@@ -410,17 +578,17 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         s: &[f64],
         t_pred: &[f64],
         p_filt: &mut [f64],
-        gain: &mut FixedGain<N, Q>,
+        gain_out: &mut FixedGain<N, Q>,
     ) -> bool {
-        let prm = &self.sets[set as usize];
+        let prm = &self.sets[set as usize].one;
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
         let h = prm.j * p;
-        let reff = Self::reff(prm, p, s);
-        let Some((l, pf, _)) = Self::gain(&h, &reff, &t) else {
+        let reff = prm.reff(p, &SMatrix::from_column_slice(s));
+        let Some((l, pf, _)) = gain(&h, &reff, &t) else {
             return false;
         };
-        gain.h = h;
-        gain.l = l;
+        gain_out.h = h;
+        gain_out.l = l;
         p_filt.copy_from_slice(pf.as_slice());
         true
     }
@@ -438,7 +606,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         let t = SMatrix::<f64, N, N>::from_column_slice(t_pred);
         let x = SVector::<f64, N>::from_column_slice(x_pred);
         let mut e0 = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
-        let (mut j, mut m, mut m_factor) = (prm.j, prm.m, prm.m_factor);
+        let (mut j, mut m, mut m_factor) = (prm.one.j, prm.one.m, prm.m_factor);
         let mut dropped = 0;
         if data.y.iter().any(|v| v.is_nan()) {
             // Only the received rows (docs/theory.md §15), removed as nahi::mixture_weights
@@ -476,24 +644,22 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
 
     #[inline]
     fn mean_update(gain: &FixedGain<N, Q>, data: &LocalData, x_pred: &[f64], x_filt: &mut [f64]) {
-        Self::mean(&gain.h, &gain.l, data, x_pred, x_filt);
+        let x = SVector::<f64, N>::from_column_slice(x_pred);
+        let measured = SVector::<f64, Q>::from_fn(|k, _| data.y[k] - data.ru[k]);
+        let (xf, _) = mean(&gain.h, &gain.l, measured, &x);
+        x_filt.copy_from_slice(xf.as_slice());
     }
 
     #[inline]
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]) {
-        let prm = &self.sets[set as usize];
-        let x = SMatrix::<f64, N, N>::from_column_slice(x);
-        let mut r = prm.a * x * prm.a_tr;
-        if with_q {
-            r += prm.q;
-        }
-        symmetrize(&mut r);
+        let prm = &self.sets[set as usize].one;
+        let r = prm.propagate(with_q, &SMatrix::from_column_slice(x));
         out.copy_from_slice(r.as_slice());
     }
 
     #[inline]
-    fn apply_a(&self, set: u32, x: &[f64], out: &mut [f64]) {
-        let x = SVector::<f64, N>::from_column_slice(x);
-        out.copy_from_slice((self.sets[set as usize].a * x).as_slice());
+    fn propagate_lanes(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]) {
+        let prm = &self.sets[set as usize].lanes;
+        scatter(&prm.propagate(with_q, &gather::<N, N>(x)), out);
     }
 }

@@ -26,14 +26,14 @@ use rayon::prelude::*;
 use nalgebra::DMatrix;
 
 use crate::error::{Error, Result};
-use crate::filter::kernel::{DynamicKernel, FixedKernel, LocalData, LocalKernel};
+use crate::filter::kernel::{DynamicKernel, FixedKernel, LANES, LocalData, LocalKernel};
 use crate::filter::{
     ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update,
     reads_second_moment,
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::mat_vec_add;
+use crate::linalg::mat_vec_add_blocks;
 use crate::model::Model;
 use crate::run::check_update;
 
@@ -138,7 +138,8 @@ pub struct TwoStepFilter<K: LocalKernel = DynamicKernel> {
 #[derive(Clone)]
 struct Worker<K> {
     kernel: K,
-    /// `S` of the current subsystem (`n × n`), and a matrix for the lifted moments.
+    /// `S` of the current run of subsystems (`n × n` each), and a matrix for the lifted
+    /// moments; `R u`, the moment covariances and means of the run.
     s_buf: Vec<f64>,
     s_mat: DMatrix<f64>,
     ru: Vec<f64>,
@@ -149,13 +150,14 @@ struct Worker<K> {
 impl<K: LocalKernel> Worker<K> {
     fn new(model: &Model) -> Self {
         let (n, q) = (model.dims.n, model.dims.q);
+        let run = run_limit(n);
         Self {
             kernel: K::new(model),
-            s_buf: vec![0.0; n * n],
+            s_buf: vec![0.0; run * n * n],
             s_mat: DMatrix::zeros(n, n),
-            ru: vec![0.0; q],
-            cov: vec![0.0; n * n],
-            mean: vec![0.0; n],
+            ru: vec![0.0; run * q],
+            cov: vec![0.0; run * n * n],
+            mean: vec![0.0; run * n],
         }
     }
 }
@@ -184,10 +186,71 @@ struct UpdateInputs<'a, G> {
     u: &'a [f64],
 }
 
+/// The longest run of subsystems [`update_range`] and [`predict_range`] take at once: one
+/// parameter set, and at most this many values of `n × n` blocks in the worker's scratch
+/// (at least [`LANES`] subsystems, at most [`CHUNK`]).
+const RUN_VALUES: usize = 1024;
+
+/// The length of the run of subsystems from `i` (0-based) that share `ids[i]`, at most
+/// `limit`.
+fn run_length(ids: &[u32], i: usize, limit: usize) -> usize {
+    ids[i..i + limit]
+        .iter()
+        .take_while(|&&id| id == ids[i])
+        .count()
+}
+
+/// The most subsystems of `n` states in one run.
+fn run_limit(n: usize) -> usize {
+    (RUN_VALUES / (n * n)).clamp(LANES, CHUNK)
+}
+
+/// The second moments `S` of the `len` subsystems from `i` (0-based) into the worker's
+/// `s_buf`, where the update reads them.
+fn second_moments<K: LocalKernel>(
+    inp: &UpdateInputs<K::Gain>,
+    wk: &mut Worker<K>,
+    i: usize,
+    len: usize,
+) {
+    if inp.known || inp.mixture || inp.shared.is_some() {
+        return;
+    }
+    let n = inp.model.dims.n;
+    let nn = n * n;
+    let s_run = &mut wk.s_buf[..len * nn];
+    if let Some(moments) = inp.lifted {
+        for (j, s) in s_run.chunks_exact_mut(nn).enumerate() {
+            moments.second_moment(i + j, n, &mut wk.s_mat);
+            s.copy_from_slice(wk.s_mat.as_slice());
+        }
+        return;
+    }
+    if inp.moment_cov.is_empty() {
+        s_run
+            .chunks_exact_mut(nn)
+            .for_each(|s| s.copy_from_slice(inp.moment_shared));
+    } else {
+        s_run.copy_from_slice(&inp.moment_cov[i * nn..(i + len) * nn]);
+    }
+    if inp.second_moment == SecondMoment::Local {
+        let means = inp.moment_mean[i * n..(i + len) * n].chunks_exact(n);
+        for (s, mean) in s_run.chunks_exact_mut(nn).zip(means) {
+            for c in 0..n {
+                for r in 0..n {
+                    s[c * n + r] += mean[r] * mean[c];
+                }
+            }
+        }
+    }
+}
+
 /// The local updates (Nahi's, or the mixture update with its `π` into `arrival`), each
 /// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of subsystems
-/// `first..first + x_filt.len() / n` (0-based). Returns the first subsystem whose `Σ` is not
-/// positive definite.
+/// `first..first + x_filt.len() / n` (0-based). The subsystems are taken in runs of one
+/// parameter set, and in each run [`LANES`] at a time where every row is in the data
+/// ([`LocalKernel::update_lanes`], the same bits). Returns the first subsystem whose `Σ` is
+/// not positive definite.
 #[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
@@ -202,81 +265,92 @@ fn update_range<K: LocalKernel>(
     let model = inp.model;
     let d = model.dims;
     let (n, q, m, s) = (d.n, d.q, d.m, d.s());
+    let nn = n * n;
     let window = model.window(inp.t);
-    for (k, (xf, pf)) in x_filt
-        .chunks_exact_mut(n)
-        .zip(p_filt.chunks_exact_mut(n * n))
-        .enumerate()
-    {
-        let i = first + k;
-        let set = window.ids[i];
+    let p = |i: usize| if inp.known { 1.0 } else { window.p[i] };
+    let count = x_filt.len() / n;
+    let in_lanes = !inp.mixture && inp.shared.is_none();
+    let mut k = 0;
+    while k < count {
+        let start = first + k;
+        let len = run_length(&window.ids, start, (count - k).min(run_limit(n)));
+        let set = window.ids[start];
         let prm = model.param_set(set);
-        let (nn, vi) = (i * n * n..(i + 1) * n * n, i * n..(i + 1) * n);
-        let ui = &inp.u[i * m..(i + 1) * m];
-        wk.ru.fill(0.0);
-        mat_vec_add(&mut wk.ru, &prm.R, ui);
-        let data = LocalData {
-            y: &inp.y[i * q..(i + 1) * q],
-            ru: &wk.ru,
-            p: if inp.known { 1.0 } else { window.p[i] },
-            known: inp.known,
-        };
-        if inp.mixture {
-            let x_pred = &inp.x_pred[vi.clone()];
-            let t_pred = &inp.t_pred[nn.clone()];
-            match wk.kernel.mixture_update(set, &data, x_pred, t_pred, xf, pf) {
-                Some(a) => {
-                    arrival[k] = a.probability;
-                    log_densities[k] = a.loglik;
-                }
-                None => return Some(i),
-            }
-        } else if let Some((gain, p_shared)) = inp.shared {
-            K::mean_update(gain, &data, &inp.x_pred[vi.clone()], xf);
-            pf.copy_from_slice(p_shared);
-        } else {
-            if let Some(moments) = inp.lifted {
-                moments.second_moment(i, n, &mut wk.s_mat);
-                wk.s_buf.copy_from_slice(wk.s_mat.as_slice());
-            } else if !inp.known {
-                let cov = if inp.moment_cov.is_empty() {
-                    inp.moment_shared
-                } else {
-                    &inp.moment_cov[nn.clone()]
+        let u = &inp.u[start * m..(start + len) * m];
+        let ru = &mut wk.ru[..len * q];
+        ru.fill(0.0);
+        mat_vec_add_blocks(ru, &prm.R, u);
+        second_moments(inp, wk, start, len);
+        let mut j = 0;
+        while j < len {
+            let (i, k) = (start + j, k + j);
+            let lanes = in_lanes
+                && j + LANES <= len
+                && !inp.y[i * q..(i + LANES) * q].iter().any(|v| v.is_nan());
+            let done = if lanes && {
+                let data: [LocalData; LANES] = std::array::from_fn(|l| LocalData {
+                    y: &inp.y[(i + l) * q..(i + l + 1) * q],
+                    ru: &wk.ru[(j + l) * q..(j + l + 1) * q],
+                    p: p(i + l),
+                    known: inp.known,
+                });
+                wk.kernel.update_lanes(
+                    set,
+                    &data,
+                    &wk.s_buf[j * nn..(j + LANES) * nn],
+                    &inp.x_pred[i * n..(i + LANES) * n],
+                    &inp.t_pred[i * nn..(i + LANES) * nn],
+                    &mut x_filt[k * n..(k + LANES) * n],
+                    &mut p_filt[k * nn..(k + LANES) * nn],
+                    &mut log_densities[k..k + LANES],
+                )
+            } {
+                LANES
+            } else {
+                // One subsystem; after failed lanes this finds the one that failed.
+                let data = LocalData {
+                    y: &inp.y[i * q..(i + 1) * q],
+                    ru: &wk.ru[j * q..(j + 1) * q],
+                    p: p(i),
+                    known: inp.known,
                 };
-                wk.s_buf.copy_from_slice(cov);
-                if inp.second_moment == SecondMoment::Local {
-                    let mean = &inp.moment_mean[vi.clone()];
-                    for c in 0..n {
-                        for r in 0..n {
-                            wk.s_buf[c * n + r] += mean[r] * mean[c];
+                let x_pred = &inp.x_pred[i * n..(i + 1) * n];
+                let t_pred = &inp.t_pred[i * nn..(i + 1) * nn];
+                let xf = &mut x_filt[k * n..(k + 1) * n];
+                let pf = &mut p_filt[k * nn..(k + 1) * nn];
+                if inp.mixture {
+                    match wk.kernel.mixture_update(set, &data, x_pred, t_pred, xf, pf) {
+                        Some(a) => {
+                            arrival[k] = a.probability;
+                            log_densities[k] = a.loglik;
                         }
+                        None => return Some(i),
+                    }
+                } else if let Some((gain, p_shared)) = inp.shared {
+                    K::mean_update(gain, &data, x_pred, xf);
+                    pf.copy_from_slice(p_shared);
+                } else {
+                    let s = &wk.s_buf[j * nn..(j + 1) * nn];
+                    match wk.kernel.update(set, &data, s, x_pred, t_pred, xf, pf) {
+                        Some(log_density) => log_densities[k] = log_density,
+                        None => return Some(i),
                     }
                 }
-            }
-            let Some(log_density) = wk.kernel.update(
-                set,
-                &data,
-                &wk.s_buf,
-                &inp.x_pred[vi.clone()],
-                &inp.t_pred[nn],
-                xf,
-                pf,
-            ) else {
-                return Some(i);
+                1
             };
-            log_densities[k] = log_density;
+            j += done;
         }
         // Step 1's right-hand side, from the estimate that feeds it (docs/theory.md §4).
-        let zi = &mut z[k * s..(k + 1) * s];
-        zi.fill(0.0);
-        let source: &[f64] = if inp.from_predicted {
-            &inp.x_pred[vi]
+        let z_run = &mut z[k * s..(k + len) * s];
+        z_run.fill(0.0);
+        let source = if inp.from_predicted {
+            &inp.x_pred[start * n..(start + len) * n]
         } else {
-            xf
+            &x_filt[k * n..(k + len) * n]
         };
-        mat_vec_add(zi, &prm.D, source);
-        mat_vec_add(zi, &prm.H, ui);
+        mat_vec_add_blocks(z_run, &prm.D, source);
+        mat_vec_add_blocks(z_run, &prm.H, u);
+        k += len;
     }
     None
 }
@@ -310,49 +384,97 @@ fn predict_range<K: LocalKernel>(
     let model = inp.model;
     let d = model.dims;
     let (n, m, s) = (d.n, d.m, d.s());
+    let nn = n * n;
     let window = model.window(inp.t);
     let count = x_pred.len() / n;
+    // The moment covariance's recursion: `local` with Q, `paper` without; none otherwise.
+    let moment_q = match inp.second_moment {
+        _ if inp.known || moment_cov.is_empty() => None,
+        SecondMoment::Local => Some(true),
+        SecondMoment::Paper => Some(false),
+        SecondMoment::Lifted | SecondMoment::Band => None,
+    };
     let mut failed = None;
-    for k in 0..count {
-        let i = first + k;
-        let set = window.ids[i];
+    let mut k = 0;
+    while k < count {
+        let start = first + k;
+        let len = run_length(&window.ids, start, (count - k).min(run_limit(n)));
+        let set = window.ids[start];
         let prm = model.param_set(set);
-        let (nn, vi) = (i * n * n..(i + 1) * n * n, i * n..(i + 1) * n);
-        let (kn, kv) = (k * n * n..(k + 1) * n * n, k * n..(k + 1) * n);
-        let (vv, ui) = (&inp.v[i * s..(i + 1) * s], &inp.u[i * m..(i + 1) * m]);
-        let xp = &mut x_pred[kv.clone()];
-        wk.kernel.apply_a(set, &inp.x_filt[vi], xp);
-        mat_vec_add(xp, &prm.B, vv);
-        mat_vec_add(xp, &prm.C, ui);
-        let tp = &mut t_pred[kn.clone()];
+        let (own, all) = (k * nn..(k + len) * nn, start * nn..(start + len) * nn);
         match inp.t_shared {
-            Some(shared) => tp.copy_from_slice(shared),
-            None => wk.kernel.propagate(set, true, &inp.p_filt[nn], tp),
+            Some(shared) => t_pred[own.clone()]
+                .chunks_exact_mut(nn)
+                .for_each(|tp| tp.copy_from_slice(shared)),
+            None => propagate_run(
+                &mut wk.kernel,
+                set,
+                true,
+                nn,
+                &inp.p_filt[all],
+                &mut t_pred[own.clone()],
+            ),
         }
-        if failed.is_none() && !(xp.iter().chain(&*tp).all(|v| v.is_finite())) {
-            failed = Some(i);
+        if let Some(with_q) = moment_q {
+            let before = &mut wk.cov[..len * nn];
+            before.copy_from_slice(&moment_cov[own.clone()]);
+            propagate_run(
+                &mut wk.kernel,
+                set,
+                with_q,
+                nn,
+                before,
+                &mut moment_cov[own.clone()],
+            );
         }
-        if inp.known {
-            continue;
+        let (v, u) = (
+            &inp.v[start * s..(start + len) * s],
+            &inp.u[start * m..(start + len) * m],
+        );
+        let xp = &mut x_pred[k * n..(k + len) * n];
+        xp.fill(0.0);
+        mat_vec_add_blocks(xp, &prm.A, &inp.x_filt[start * n..(start + len) * n]);
+        mat_vec_add_blocks(xp, &prm.B, v);
+        mat_vec_add_blocks(xp, &prm.C, u);
+        if failed.is_none() {
+            let mut blocks = xp.chunks_exact(n).zip(t_pred[own].chunks_exact(nn));
+            failed = blocks
+                .position(|(x, t)| !x.iter().chain(t).all(|v| v.is_finite()))
+                .map(|j| start + j);
         }
-        if inp.second_moment == SecondMoment::Local {
-            let mean = &mut moment_mean[kv];
-            wk.mean.copy_from_slice(mean);
-            wk.kernel.apply_a(set, &wk.mean, mean);
-            mat_vec_add(mean, &prm.B, vv);
-            mat_vec_add(mean, &prm.C, ui);
+        if !inp.known && inp.second_moment == SecondMoment::Local {
+            let mean = &mut moment_mean[k * n..(k + len) * n];
+            let before = &mut wk.mean[..len * n];
+            before.copy_from_slice(mean);
+            mean.fill(0.0);
+            mat_vec_add_blocks(mean, &prm.A, before);
+            mat_vec_add_blocks(mean, &prm.B, v);
+            mat_vec_add_blocks(mean, &prm.C, u);
         }
-        if !moment_cov.is_empty() {
-            let cov = &mut moment_cov[kn];
-            wk.cov.copy_from_slice(cov);
-            match inp.second_moment {
-                SecondMoment::Local => wk.kernel.propagate(set, true, &wk.cov, cov),
-                SecondMoment::Paper => wk.kernel.propagate(set, false, &wk.cov, cov),
-                SecondMoment::Lifted | SecondMoment::Band => {}
-            }
-        }
+        k += len;
     }
     failed
+}
+
+/// [`LocalKernel::propagate`] of the `n × n` blocks (`nn` values each) of `x` into those of
+/// `out`, [`LANES`] at a time where they fit.
+fn propagate_run<K: LocalKernel>(
+    kernel: &mut K,
+    set: u32,
+    with_q: bool,
+    nn: usize,
+    x: &[f64],
+    out: &mut [f64],
+) {
+    let mut xs = x.chunks_exact(LANES * nn);
+    let mut outs = out.chunks_exact_mut(LANES * nn);
+    for (x, out) in (&mut xs).zip(&mut outs) {
+        kernel.propagate_lanes(set, with_q, x, out);
+    }
+    let rest = xs.remainder().chunks_exact(nn);
+    for (x, out) in rest.zip(outs.into_remainder().chunks_exact_mut(nn)) {
+        kernel.propagate(set, with_q, x, out);
+    }
 }
 
 /// `v.par_chunks_mut(size)`, or `count` empty slices when `v` is empty.
@@ -654,9 +776,10 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
             let set = window.ids[0];
             let with_q = self.opts.second_moment == SecondMoment::Local;
             let wk = &mut self.workers[0];
-            wk.cov.copy_from_slice(&self.moment_shared);
+            let before = &mut wk.cov[..n * n];
+            before.copy_from_slice(&self.moment_shared);
             wk.kernel
-                .propagate(set, with_q, &wk.cov, &mut self.moment_shared);
+                .propagate(set, with_q, before, &mut self.moment_shared);
         }
         if let Some((sys, moments)) = &mut self.lifted {
             sys.prepare(model, t)?;

@@ -6,17 +6,24 @@
 pub mod band;
 pub mod band_lu;
 
-use nalgebra::{DMatrix, Dim, Matrix, StorageMut, SymmetricEigen};
+use nalgebra::{DMatrix, Dim, Matrix, SimdRealField, StorageMut, SymmetricEigen};
 
 /// `M ← (M + Mᵀ) / 2` for a square matrix of any size and storage: every covariance is
 /// symmetrised after it is formed, since rounding leaves it slightly asymmetric
 /// (docs/theory.md §12). A flat column-major block is symmetrised through a view,
-/// `symmetrize(&mut DMatrixViewMut::from_slice(c, m, m))`.
-pub fn symmetrize<D: Dim, S: StorageMut<f64, D, D>>(m: &mut Matrix<f64, D, D, S>) {
+/// `symmetrize(&mut DMatrixViewMut::from_slice(c, m, m))`. Any real scalar, `f64` or one
+/// holding several subsystems' values (the two-step filter's lanes).
+pub fn symmetrize<T, D, S>(m: &mut Matrix<T, D, D, S>)
+where
+    T: SimdRealField + Copy,
+    D: Dim,
+    S: StorageMut<T, D, D>,
+{
     let n = m.nrows();
+    let half: T = nalgebra::convert(0.5);
     for c in 0..n {
         for r in c + 1..n {
-            let v = 0.5 * (m[(r, c)] + m[(c, r)]);
+            let v = half * (m[(r, c)] + m[(c, r)]);
             m[(r, c)] = v;
             m[(c, r)] = v;
         }
@@ -34,6 +41,56 @@ pub fn mat_vec_add(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
             let col = &a.as_slice()[c * rows..(c + 1) * rows];
             for (o, &acol) in out.iter_mut().zip(col) {
                 *o += acol * xc;
+            }
+        }
+    }
+}
+
+/// `out_b += A x_b` for every block `b` of `out` (`A.nrows()` values each) and of `x`
+/// (`A.ncols()` each): many subsystems' [`mat_vec_add`] with one matrix, each element of
+/// each block given the same operations in the same order; compile-time sizes up to 4 × 4.
+pub fn mat_vec_add_blocks(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
+    macro_rules! fixed {
+        ($(($r:literal, $c:literal)),*) => {
+            match a.shape() {
+                $(($r, $c) => blocks_fixed::<$r, $c>(out, a, x),)*
+                (rows, cols) if rows > 0 && cols > 0 => {
+                    let blocks = out.chunks_exact_mut(rows).zip(x.chunks_exact(cols));
+                    blocks.for_each(|(out, x)| mat_vec_add(out, a, x));
+                }
+                _ => {}
+            }
+        };
+    }
+    fixed!(
+        (1, 1),
+        (1, 2),
+        (1, 3),
+        (1, 4),
+        (2, 1),
+        (2, 2),
+        (2, 3),
+        (2, 4),
+        (3, 1),
+        (3, 2),
+        (3, 3),
+        (3, 4),
+        (4, 1),
+        (4, 2),
+        (4, 3),
+        (4, 4)
+    )
+}
+
+/// [`mat_vec_add_blocks`] for an `R × C` matrix.
+fn blocks_fixed<const R: usize, const C: usize>(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
+    let a: [[f64; R]; C] = std::array::from_fn(|c| std::array::from_fn(|r| a[(r, c)]));
+    for (out, x) in out.chunks_exact_mut(R).zip(x.chunks_exact(C)) {
+        for (col, &xc) in a.iter().zip(x) {
+            if xc != 0.0 {
+                for (o, &arc) in out.iter_mut().zip(col) {
+                    *o += arc * xc;
+                }
             }
         }
     }

@@ -348,6 +348,107 @@ fn fixed_size_kernels_equal_dynamic_kernel() {
     }
 }
 
+/// The fixed-size kernel's lanes (`LANES` subsystems at once) give each subsystem the bits of
+/// its one-subsystem update and prediction, in both dropout modes, with arrival probabilities
+/// that differ between lanes (`p = 1` among them); a lane whose `Σ` is not positive definite
+/// fails the lanes, and the one-subsystem update names it.
+#[test]
+fn kernel_lanes_equal_one_subsystem_at_a_time() {
+    use sisfilt::filter::kernel::{FixedKernel, LANES, LocalData, LocalKernel};
+    let model = model_from(
+        "subsystems = 4\n[interconnection]\nplus = 1\nminus = 1\n[model]\n\
+         A = [[0.9, 0.2], [-0.1, 0.8]]\nB = [[0.3, 0.1], [0.0, 0.2]]\nC = [[0.0], [0.5]]\n\
+         D = [[0.4, 0.1], [0.2, 0.3]]\nG = [[0.2, 0.1], [0.1, 0.2]]\nJ = [[1.0, 0.3], [-0.4, 0.7]]\n\
+         R = [[0.2], [0.1]]\nM = [[0.3, 0.05], [0.05, 0.2]]\nQ = [[0.02, 0.0], [0.0, 0.01]]\n\
+         [dropout]\np = 0.8\n[initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n",
+    );
+    let (n, q) = (2, 2);
+    // Symmetric positive definite blocks that differ per lane.
+    let spd = |l: usize, scale: f64| {
+        let (a, b, c) = (
+            1.0 + 0.3 * l as f64,
+            0.2 - 0.1 * l as f64,
+            0.7 + 0.05 * l as f64,
+        );
+        [scale * a, scale * b, scale * b, scale * c]
+    };
+    let t_pred: Vec<f64> = (0..LANES).flat_map(|l| spd(l, 1.0)).collect();
+    let s: Vec<f64> = (0..LANES).flat_map(|l| spd(l, 2.5)).collect();
+    let x_pred: Vec<f64> = (0..LANES * n).map(|k| 0.3 - 0.17 * k as f64).collect();
+    let y: Vec<f64> = (0..LANES * q).map(|k| 1.1 - 0.4 * k as f64).collect();
+    let ru: Vec<f64> = (0..LANES * q).map(|k| 0.05 * k as f64).collect();
+    let p = [0.8, 1.0, 0.35, 0.6];
+    let mut kernel = FixedKernel::<2, 2>::new(&model);
+    for known in [false, true] {
+        let data: [LocalData; LANES] = std::array::from_fn(|l| LocalData {
+            y: &y[l * q..(l + 1) * q],
+            ru: &ru[l * q..(l + 1) * q],
+            p: if known { 1.0 } else { p[l] },
+            known,
+        });
+        let (mut xf, mut pf, mut ld) = (vec![0.0; LANES * n], vec![0.0; LANES * n * n], [0.0; 4]);
+        assert!(kernel.update_lanes(0, &data, &s, &x_pred, &t_pred, &mut xf, &mut pf, &mut ld));
+        for (l, data) in data.iter().enumerate() {
+            let (v, m) = (l * n..(l + 1) * n, l * n * n..(l + 1) * n * n);
+            let (mut x1, mut p1) = ([0.0; 2], [0.0; 4]);
+            let density = kernel
+                .update(
+                    0,
+                    data,
+                    &s[m.clone()],
+                    &x_pred[v.clone()],
+                    &t_pred[m.clone()],
+                    &mut x1,
+                    &mut p1,
+                )
+                .unwrap();
+            let bits =
+                |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(
+                bits(&xf[v], &x1) && bits(&pf[m], &p1),
+                "known={known} lane {l}"
+            );
+            if known {
+                assert_eq!(ld[l].to_bits(), density.to_bits(), "lane {l}");
+            }
+        }
+        // A lane whose Σ = H T Hᵀ + R_eff is not positive definite: T negative definite.
+        let mut broken = t_pred.clone();
+        broken[2 * n * n..3 * n * n]
+            .iter_mut()
+            .for_each(|v| *v *= -10.0);
+        assert!(!kernel.update_lanes(0, &data, &s, &x_pred, &broken, &mut xf, &mut pf, &mut ld));
+        let m = 2 * n * n..3 * n * n;
+        let (mut x1, mut p1) = ([0.0; 2], [0.0; 4]);
+        assert!(
+            kernel
+                .update(
+                    0,
+                    &data[2],
+                    &s[m.clone()],
+                    &x_pred[4..6],
+                    &broken[m],
+                    &mut x1,
+                    &mut p1
+                )
+                .is_none()
+        );
+    }
+    for with_q in [false, true] {
+        let mut out = vec![0.0; LANES * n * n];
+        kernel.propagate_lanes(0, with_q, &t_pred, &mut out);
+        for (x, lanes) in t_pred.chunks_exact(n * n).zip(out.chunks_exact(n * n)) {
+            let mut one = [0.0; 4];
+            kernel.propagate(0, with_q, x, &mut one);
+            assert!(
+                one.iter()
+                    .zip(lanes)
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
+            );
+        }
+    }
+}
+
 /// Long chains run step 2 in parallel over chunks of subsystems: the output must be the same
 /// bits with one thread and with two (6000 subsystems, above the parallel threshold).
 #[test]
