@@ -28,6 +28,28 @@ pub struct LocalData<'a> {
     pub known: bool,
 }
 
+/// The local data of [`LANES`] consecutive subsystems: `y` and `R u` of each, one after the
+/// other (`LANES · q` values each), every row in the data.
+pub struct LaneData<'a> {
+    pub y: &'a [f64],
+    pub ru: &'a [f64],
+    pub p: [f64; LANES],
+    pub known: bool,
+}
+
+impl LaneData<'_> {
+    /// The data of lane `l`.
+    pub fn lane(&self, l: usize) -> LocalData<'_> {
+        let q = self.y.len() / LANES;
+        LocalData {
+            y: &self.y[l * q..(l + 1) * q],
+            ru: &self.ru[l * q..(l + 1) * q],
+            p: self.p[l],
+            known: self.known,
+        }
+    }
+}
+
 /// Local Nahi update and covariance prediction for parameter set `set` of the model.
 ///
 /// The unknown-dropout update splits into a covariance part ([`LocalKernel::covariance_update`]:
@@ -86,16 +108,16 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
     /// `out = A X Aᵀ + Q` (or without `Q`), symmetrised.
     fn propagate(&mut self, set: u32, with_q: bool, x: &[f64], out: &mut [f64]);
     /// [`LocalKernel::update`] of [`LANES`] consecutive subsystems of parameter set `set`,
-    /// every row of their measurements in the data: `data[l]` and the `l`-th block of `s`,
-    /// `x_pred`, `t_pred`, `x_filt`, `p_filt` and `log_densities` are subsystem `l`'s, each
-    /// given the bits [`LocalKernel::update`] gives it. Returns `false` when some subsystem's
+    /// every row of their measurements in the data: lane `l` of `data` and the `l`-th block
+    /// of `s`, `x_pred`, `t_pred`, `x_filt`, `p_filt` and `log_densities` are subsystem `l`'s,
+    /// each given the bits [`LocalKernel::update`] gives it. Returns `false` when some subsystem's
     /// `Σ` is not positive definite (the outputs are then not to be read). By default one
     /// subsystem after the other.
     #[allow(clippy::too_many_arguments)]
     fn update_lanes(
         &mut self,
         set: u32,
-        data: &[LocalData; LANES],
+        data: &LaneData,
         s: &[f64],
         x_pred: &[f64],
         t_pred: &[f64],
@@ -105,10 +127,10 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
     ) -> bool {
         let (n, nn) = (x_pred.len() / LANES, t_pred.len() / LANES);
         let s_len = s.len() / LANES;
-        for (l, data) in data.iter().enumerate() {
+        for l in 0..LANES {
             let Some(log_density) = self.update(
                 set,
-                data,
+                &data.lane(l),
                 &s[l * s_len..(l + 1) * s_len],
                 &x_pred[l * n..(l + 1) * n],
                 &t_pred[l * nn..(l + 1) * nn],
@@ -530,7 +552,7 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
     fn update_lanes(
         &mut self,
         set: u32,
-        data: &[LocalData; LANES],
+        data: &LaneData,
         s: &[f64],
         x_pred: &[f64],
         t_pred: &[f64],
@@ -539,13 +561,11 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         log_densities: &mut [f64],
     ) -> bool {
         let prm = &self.sets[set as usize].lanes;
-        let known = data[0].known;
-        let p = Lanes::from(data.each_ref().map(|d| d.p));
+        let known = data.known;
+        let p = Lanes::from(data.p);
         let t = gather::<N, N>(t_pred);
         let x = gather::<N, 1>(x_pred);
-        let measured = SVector::<Lanes, Q>::from_fn(|k, _| {
-            Lanes::from(data.each_ref().map(|d| d.y[k] - d.ru[k]))
-        });
+        let measured = gather::<Q, 1>(data.y) - gather::<Q, 1>(data.ru);
         let h = prm.j * p;
         let reff = if known {
             prm.m

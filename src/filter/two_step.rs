@@ -26,14 +26,14 @@ use rayon::prelude::*;
 use nalgebra::DMatrix;
 
 use crate::error::{Error, Result};
-use crate::filter::kernel::{DynamicKernel, FixedKernel, LANES, LocalData, LocalKernel};
+use crate::filter::kernel::{DynamicKernel, FixedKernel, LANES, LaneData, LocalData, LocalKernel};
 use crate::filter::{
     ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepOptions, Update,
     reads_second_moment,
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::mat_vec_add_blocks;
+use crate::linalg::{add_outer_blocks, mat_vec_add_blocks};
 use crate::model::Model;
 use crate::run::check_update;
 
@@ -234,14 +234,7 @@ fn second_moments<K: LocalKernel>(
         s_run.copy_from_slice(&inp.moment_cov[i * nn..(i + len) * nn]);
     }
     if inp.second_moment == SecondMoment::Local {
-        let means = inp.moment_mean[i * n..(i + len) * n].chunks_exact(n);
-        for (s, mean) in s_run.chunks_exact_mut(nn).zip(means) {
-            for c in 0..n {
-                for r in 0..n {
-                    s[c * n + r] += mean[r] * mean[c];
-                }
-            }
-        }
+        add_outer_blocks(s_run, &inp.moment_mean[i * n..(i + len) * n], n);
     }
 }
 
@@ -288,12 +281,15 @@ fn update_range<K: LocalKernel>(
                 && j + LANES <= len
                 && !inp.y[i * q..(i + LANES) * q].iter().any(|v| v.is_nan());
             let done = if lanes && {
-                let data: [LocalData; LANES] = std::array::from_fn(|l| LocalData {
-                    y: &inp.y[(i + l) * q..(i + l + 1) * q],
-                    ru: &wk.ru[(j + l) * q..(j + l + 1) * q],
-                    p: p(i + l),
+                let data = LaneData {
+                    y: &inp.y[i * q..(i + LANES) * q],
+                    ru: &wk.ru[j * q..(j + LANES) * q],
+                    p: match inp.known {
+                        true => [1.0; LANES],
+                        false => window.p[i..i + LANES].try_into().expect("LANES values"),
+                    },
                     known: inp.known,
-                });
+                };
                 wk.kernel.update_lanes(
                     set,
                     &data,

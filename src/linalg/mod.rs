@@ -96,6 +96,35 @@ fn blocks_fixed<const R: usize, const C: usize>(out: &mut [f64], a: &DMatrix<f64
     }
 }
 
+/// `S_b += m_b m_bᵀ` for every column-major `n × n` block `S_b` of `s` and `n`-block `m_b`
+/// of `m`; compile-time sizes up to 4.
+pub fn add_outer_blocks(s: &mut [f64], m: &[f64], n: usize) {
+    fn fixed<const N: usize>(s: &mut [f64], m: &[f64]) {
+        for (s, m) in s.chunks_exact_mut(N * N).zip(m.chunks_exact(N)) {
+            for c in 0..N {
+                for r in 0..N {
+                    s[c * N + r] += m[r] * m[c];
+                }
+            }
+        }
+    }
+    match n {
+        1 => fixed::<1>(s, m),
+        2 => fixed::<2>(s, m),
+        3 => fixed::<3>(s, m),
+        4 => fixed::<4>(s, m),
+        _ => {
+            for (s, m) in s.chunks_exact_mut(n * n).zip(m.chunks_exact(n)) {
+                for c in 0..n {
+                    for r in 0..n {
+                        s[c * n + r] += m[r] * m[c];
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// A square root `F` with `F Fᵀ = S` of a symmetric positive semidefinite `S`, from its
 /// eigendecomposition (`F = U √Λ`, negative rounding-level eigenvalues set to zero). Unlike a
 /// Cholesky factor it exists for singular `S` (e.g. `Q = 0`).

@@ -354,7 +354,7 @@ fn fixed_size_kernels_equal_dynamic_kernel() {
 /// fails the lanes, and the one-subsystem update names it.
 #[test]
 fn kernel_lanes_equal_one_subsystem_at_a_time() {
-    use sisfilt::filter::kernel::{FixedKernel, LANES, LocalData, LocalKernel};
+    use sisfilt::filter::kernel::{FixedKernel, LANES, LaneData, LocalKernel};
     let model = model_from(
         "subsystems = 4\n[interconnection]\nplus = 1\nminus = 1\n[model]\n\
          A = [[0.9, 0.2], [-0.1, 0.8]]\nB = [[0.3, 0.1], [0.0, 0.2]]\nC = [[0.0], [0.5]]\n\
@@ -380,21 +380,21 @@ fn kernel_lanes_equal_one_subsystem_at_a_time() {
     let p = [0.8, 1.0, 0.35, 0.6];
     let mut kernel = FixedKernel::<2, 2>::new(&model);
     for known in [false, true] {
-        let data: [LocalData; LANES] = std::array::from_fn(|l| LocalData {
-            y: &y[l * q..(l + 1) * q],
-            ru: &ru[l * q..(l + 1) * q],
-            p: if known { 1.0 } else { p[l] },
+        let data = LaneData {
+            y: &y,
+            ru: &ru,
+            p: if known { [1.0; LANES] } else { p },
             known,
-        });
+        };
         let (mut xf, mut pf, mut ld) = (vec![0.0; LANES * n], vec![0.0; LANES * n * n], [0.0; 4]);
         assert!(kernel.update_lanes(0, &data, &s, &x_pred, &t_pred, &mut xf, &mut pf, &mut ld));
-        for (l, data) in data.iter().enumerate() {
+        for l in 0..LANES {
             let (v, m) = (l * n..(l + 1) * n, l * n * n..(l + 1) * n * n);
             let (mut x1, mut p1) = ([0.0; 2], [0.0; 4]);
             let density = kernel
                 .update(
                     0,
-                    data,
+                    &data.lane(l),
                     &s[m.clone()],
                     &x_pred[v.clone()],
                     &t_pred[m.clone()],
@@ -424,7 +424,7 @@ fn kernel_lanes_equal_one_subsystem_at_a_time() {
             kernel
                 .update(
                     0,
-                    &data[2],
+                    &data.lane(2),
                     &s[m.clone()],
                     &x_pred[4..6],
                     &broken[m],
