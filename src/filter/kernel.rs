@@ -157,7 +157,7 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
 pub const LANES: usize = 4;
 
 /// One value per lane.
-type Lanes = WideF64x4;
+pub(crate) type Lanes = WideF64x4;
 
 /// Any size: nalgebra's dynamic matrices and one reused [`Workspace`].
 #[derive(Clone)]
@@ -448,7 +448,7 @@ fn mean<T: SimdRealField + Copy, const N: usize, const Q: usize>(
 
 /// The lanes of `LANES` column-major `R × C` blocks stored one after the other.
 #[inline(always)]
-fn gather<const R: usize, const C: usize>(blocks: &[f64]) -> SMatrix<Lanes, R, C> {
+pub(crate) fn gather<const R: usize, const C: usize>(blocks: &[f64]) -> SMatrix<Lanes, R, C> {
     SMatrix::from_fn(|r, c| Lanes::from(std::array::from_fn(|l| blocks[l * R * C + c * R + r])))
 }
 

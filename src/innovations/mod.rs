@@ -8,6 +8,7 @@
 //! `z₁`), the share of readings the data say arrived against the band of `p`, per subsystem
 //! and over the chain.
 
+mod lanes;
 pub mod term;
 
 use rayon::prelude::*;
@@ -15,7 +16,9 @@ use serde::{Deserialize, Serialize};
 use statrs::distribution::{ChiSquared, ContinuousCDF, Normal, StudentsT};
 
 use crate::error::{Error, Result};
+use crate::filter::kernel::LANES;
 use crate::filter::{Dropouts, Update};
+use crate::linalg::mat_vec_add_blocks;
 use crate::model::Model;
 
 pub use term::{Term, TermKind, TermScorer, TermWorkspace, scorer};
@@ -204,7 +207,8 @@ struct Worker {
 
 impl Worker {
     /// Scores the subsystems `first + 1 ..` of `step` (as many as `nis` holds) into their
-    /// NIS, tallies and series; the 1-based subsystem whose term broke down, if any.
+    /// NIS, tallies and series, [`LANES`] at a time where they share a parameter set and
+    /// every row is in the data; the 1-based subsystem whose term broke down, if any.
     fn score(
         &mut self,
         step: &StepData,
@@ -215,50 +219,114 @@ impl Worker {
     ) -> Option<usize> {
         let dims = step.model.dims;
         let (n, q, m) = (dims.n, dims.q, dims.m);
+        let nn = n * n;
         let window = step.model.window(step.t);
-        for (k, (nis, tally)) in nis.iter_mut().zip(tallies).enumerate() {
+        let count = nis.len();
+        let mut k = 0;
+        while k < count {
             let i = first + k;
-            let prm = step.model.param_set(window.ids[i]);
-            let p = window.p[i];
-            self.ru.fill(0.0);
-            crate::linalg::mat_vec_add(&mut self.ru, &prm.R, &step.u[i * m..(i + 1) * m]);
+            let id = window.ids[i];
+            let prm = step.model.param_set(id);
+            let lanes = k + LANES <= count
+                && window.ids[i..i + LANES].iter().all(|&other| other == id)
+                && !step.y[i * q..(i + LANES) * q].iter().any(|v| v.is_nan())
+                && {
+                    let ru = &mut self.ru[..LANES * q];
+                    ru.fill(0.0);
+                    mat_vec_add_blocks(ru, &prm.R, &step.u[i * m..(i + LANES) * m]);
+                    let p = window.p[i..i + LANES].try_into().expect("LANES values");
+                    self.scorer.score_lanes(
+                        step.kind,
+                        id,
+                        prm,
+                        p,
+                        &step.mean[i * n..(i + LANES) * n],
+                        &step.cov[i * nn..(i + LANES) * nn],
+                        &step.y[i * q..(i + LANES) * q],
+                        ru,
+                    )
+                };
+            if lanes {
+                for l in 0..LANES {
+                    let (term, eps) = self.scorer.lane(l);
+                    let k = k + l;
+                    let series = &mut series[k * q..(k + 1) * q];
+                    let tally = &mut tallies[k];
+                    nis[k] = record(
+                        step.t,
+                        window.p[i + l],
+                        &term,
+                        eps,
+                        tally,
+                        series,
+                        &mut self.block,
+                    );
+                }
+                k += LANES;
+                continue;
+            }
+            // One subsystem: a gap, a run shorter than the lanes, or a covariance that is not
+            // positive definite somewhere in the lanes.
+            let ru = &mut self.ru[..q];
+            ru.fill(0.0);
+            crate::linalg::mat_vec_add(ru, &prm.R, &step.u[i * m..(i + 1) * m]);
             let mean = &step.mean[i * n..(i + 1) * n];
-            let cov = &step.cov[i * n * n..(i + 1) * n * n];
+            let cov = &step.cov[i * nn..(i + 1) * nn];
             let y = &step.y[i * q..(i + 1) * q];
-            let term = match self.scorer.term(step.kind, prm, p, mean, cov, y, &self.ru) {
+            let p = window.p[i];
+            let term = match self.scorer.term(step.kind, prm, p, mean, cov, y, ru) {
                 Some(term) => term,
                 // A prior that is no longer finite is the filter's breakdown, which the run
                 // reports as such: the term is not scored.
                 None if !mean.iter().chain(cov).all(|v| v.is_finite()) => Term::UNSCORED,
                 None => return Some(i + 1),
             };
-            *nis = term.nis;
-            for (e, s) in self
-                .scorer
-                .eps()
-                .iter()
-                .zip(&mut series[k * q..(k + 1) * q])
-            {
-                s.add(step.t, *e);
-            }
-            if term.received == 0 {
-                continue;
-            }
-            let excess = term.nis - term.received as f64;
-            tally.nis += term.nis;
-            tally.received += term.received as f64;
-            tally.variance += term.variance;
-            tally.blocks.current += excess;
-            self.block += excess;
-            if let Some(pi) = term.arrival {
-                tally.arrival += pi;
-                tally.p += p;
-                tally.p_variance += p * (1.0 - p);
-                tally.arrival_terms += 1;
-            }
+            let series = &mut series[k * q..(k + 1) * q];
+            nis[k] = record(
+                step.t,
+                p,
+                &term,
+                self.scorer.eps(),
+                &mut tallies[k],
+                series,
+                &mut self.block,
+            );
+            k += 1;
         }
         None
     }
+}
+
+/// Adds a term with arrival probability `p` and standardised innovations `eps` at step `t` to
+/// its subsystem's tally and series and to the chunk's block sum; returns its NIS.
+fn record(
+    t: usize,
+    p: f64,
+    term: &Term,
+    eps: &[f64],
+    tally: &mut Tally,
+    series: &mut [Series],
+    block: &mut f64,
+) -> f64 {
+    for (e, s) in eps.iter().zip(series) {
+        s.add(t, *e);
+    }
+    if term.received == 0 {
+        return term.nis;
+    }
+    let excess = term.nis - term.received as f64;
+    tally.nis += term.nis;
+    tally.received += term.received as f64;
+    tally.variance += term.variance;
+    tally.blocks.current += excess;
+    *block += excess;
+    if let Some(pi) = term.arrival {
+        tally.arrival += pi;
+        tally.p += p;
+        tally.p_variance += p * (1.0 - p);
+        tally.arrival_terms += 1;
+    }
+    term.nis
 }
 
 /// The innovation check of one run: fed the prior, the measurements and the inputs of each
@@ -297,7 +365,7 @@ impl InnovationCheck {
             workers: (0..big_n.div_ceil(CHUNK).max(1))
                 .map(|_| Worker {
                     scorer: scorer(n, q),
-                    ru: vec![0.0; q],
+                    ru: vec![0.0; LANES * q],
                     block: 0.0,
                 })
                 .collect(),

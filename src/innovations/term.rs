@@ -11,7 +11,9 @@ use nalgebra::{
     Cholesky, Const, DefaultAllocator, Dim, Dyn, MatrixView, OMatrix, OVector, U1, VectorView,
 };
 
+use crate::filter::kernel::LANES;
 use crate::filter::nahi::{Arrival, received_log_density};
+use crate::innovations::lanes::LaneTerms;
 use crate::model::Params;
 
 /// Which predictive distribution a term is scored against (docs/theory.md §14).
@@ -69,6 +71,71 @@ pub trait TermScorer: Send {
     /// The standardised innovations of the last term (`q` values, NaN for a row not in the
     /// data).
     fn eps(&self) -> &[f64];
+    /// The terms of [`LANES`] consecutive subsystems of parameter set `id`, every row of
+    /// their measurements in the data ([`LaneTerms::score`]; `p`, `mean`, `cov`, `y` and `ru`
+    /// one subsystem after the other), read with [`TermScorer::lane`]. `false` when they are
+    /// to be scored one at a time: a covariance not positive definite, or runtime sizes.
+    #[allow(clippy::too_many_arguments)]
+    fn score_lanes(
+        &mut self,
+        _kind: TermKind,
+        _id: u32,
+        _prm: &Params,
+        _p: [f64; LANES],
+        _mean: &[f64],
+        _cov: &[f64],
+        _y: &[f64],
+        _ru: &[f64],
+    ) -> bool {
+        false
+    }
+    /// Lane `l`'s term and standardised innovations after [`TermScorer::score_lanes`].
+    fn lane(&self, _l: usize) -> (Term, &[f64]) {
+        (Term::UNSCORED, &[])
+    }
+}
+
+/// Compile-time sizes: one term at a time by [`TermWorkspace`], lanes by [`LaneTerms`].
+struct FixedScorer<const N: usize, const Q: usize> {
+    one: TermWorkspace<Const<N>, Const<Q>>,
+    lanes: LaneTerms<N, Q>,
+}
+
+impl<const N: usize, const Q: usize> TermScorer for FixedScorer<N, Q> {
+    fn term(
+        &mut self,
+        kind: TermKind,
+        prm: &Params,
+        p: f64,
+        mean: &[f64],
+        cov: &[f64],
+        y: &[f64],
+        ru: &[f64],
+    ) -> Option<Term> {
+        self.one.term(kind, prm, p, mean, cov, y, ru)
+    }
+
+    fn eps(&self) -> &[f64] {
+        self.one.eps()
+    }
+
+    fn score_lanes(
+        &mut self,
+        kind: TermKind,
+        id: u32,
+        prm: &Params,
+        p: [f64; LANES],
+        mean: &[f64],
+        cov: &[f64],
+        y: &[f64],
+        ru: &[f64],
+    ) -> bool {
+        self.lanes.score(kind, id, prm, p, mean, cov, y, ru)
+    }
+
+    fn lane(&self, l: usize) -> (Term, &[f64]) {
+        (self.lanes.terms[l], &self.lanes.eps[l])
+    }
 }
 
 /// The scorer for `n` states and `q` measured elements: compile-time sizes where they are
@@ -77,7 +144,10 @@ pub fn scorer(n: usize, q: usize) -> Box<dyn TermScorer> {
     macro_rules! fixed {
         ($(($n:literal, $q:literal)),*) => {
             match (n, q) {
-                $(($n, $q) => Box::new(TermWorkspace::new(Const::<$n>, Const::<$q>)),)*
+                $(($n, $q) => Box::new(FixedScorer::<$n, $q> {
+                    one: TermWorkspace::new(Const::<$n>, Const::<$q>),
+                    lanes: LaneTerms::default(),
+                }),)*
                 _ => Box::new(TermWorkspace::new(Dyn(n), Dyn(q))),
             }
         };

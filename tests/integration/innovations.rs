@@ -244,6 +244,76 @@ fn nahi_nis_moments_match_a_monte_carlo() {
     }
 }
 
+/// Four subsystems scored at once (compile-time sizes, every row received) give each the
+/// figures of its own term to 1e−12, for every kind of term, with arrival probabilities
+/// that differ between the lanes (0 and 1 among them); a lane whose `J Σ Jᵀ + M` is not
+/// positive definite leaves the four to be scored one at a time.
+#[test]
+fn lanes_score_as_terms_one_at_a_time() {
+    use sisfilt::filter::kernel::LANES;
+    let model = model_from(CHAIN);
+    let prm = model.params(1, 1);
+    let (n, q) = (prm.J.ncols(), prm.J.nrows());
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut normal = |len: usize| -> Vec<f64> {
+        (0..len)
+            .map(|_| rng.sample::<f64, _>(StandardNormal))
+            .collect()
+    };
+    let mean = normal(LANES * n);
+    let y = normal(LANES * q);
+    let ru = normal(LANES * q);
+    // Σ_l = B_l B_lᵀ + 0.1 I, positive definite and different in each lane.
+    let cov: Vec<f64> = (0..LANES)
+        .flat_map(|_| {
+            let b = DMatrix::from_column_slice(n, n, &normal(n * n));
+            let c = &b * b.transpose() + DMatrix::identity(n, n) * 0.1;
+            c.as_slice().to_vec()
+        })
+        .collect();
+    let mut lanes = scorer(n, q);
+    let mut one = scorer(n, q);
+    for kind in [TermKind::Gaussian, TermKind::Nahi, TermKind::Mixture] {
+        let p = match kind {
+            TermKind::Gaussian => [1.0; LANES],
+            _ => [0.8, 0.0, 1.0, 0.35],
+        };
+        assert!(lanes.score_lanes(kind, 0, prm, p, &mean, &cov, &y, &ru));
+        for l in 0..LANES {
+            let (term, eps) = lanes.lane(l);
+            let (nn, v, qv) = (
+                l * n * n..(l + 1) * n * n,
+                l * n..(l + 1) * n,
+                l * q..(l + 1) * q,
+            );
+            let alone = one
+                .term(kind, prm, p[l], &mean[v], &cov[nn], &y[qv.clone()], &ru[qv])
+                .unwrap();
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + b.abs());
+            assert!(
+                close(term.nis, alone.nis),
+                "{kind:?} lane {l}: {term:?} vs {alone:?}"
+            );
+            assert!(close(term.variance, alone.variance), "{kind:?} lane {l}");
+            assert_eq!(term.received, alone.received);
+            match (term.arrival, alone.arrival) {
+                (Some(a), Some(b)) => assert!(close(a, b), "{kind:?} lane {l}: π {a} vs {b}"),
+                (a, b) => assert_eq!(a, b),
+            }
+            assert!(
+                eps.iter().zip(one.eps()).all(|(a, b)| close(*a, *b)),
+                "{kind:?} lane {l}"
+            );
+        }
+        // Lane 2's Σ far from positive definite: J Σ Jᵀ + M is not either.
+        let mut broken = cov.clone();
+        broken[2 * n * n..3 * n * n]
+            .iter_mut()
+            .for_each(|v| *v *= -100.0);
+        assert!(!lanes.score_lanes(kind, 0, prm, p, &mean, &broken, &y, &ru));
+    }
+}
+
 /// The platoon's config with `line` (a key at the start of a line) replaced.
 fn platoon_with(key: &str, line: &str) -> sisfilt::model::Model {
     let text = std::fs::read_to_string(shipped_config("platoon.toml")).unwrap();

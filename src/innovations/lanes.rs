@@ -1,0 +1,198 @@
+//! The terms of [`LANES`] consecutive subsystems at once (compile-time sizes, every row of
+//! their measurements in the data): the formulas of [`super::term`] over a scalar that holds
+//! one value per subsystem, so that the square roots and divisions of the four factors run
+//! side by side instead of one chain after another (docs/theory.md §14).
+
+use nalgebra::{Cholesky, SMatrix, SVector, SimdBool, SimdPartialOrd, SimdValue};
+
+use crate::filter::kernel::{LANES, Lanes, gather};
+use crate::filter::nahi::{Arrival, LN_2PI};
+use crate::model::Params;
+
+use super::term::{Term, TermKind};
+
+/// The matrices of one parameter set in every lane.
+struct LaneSet<const N: usize, const Q: usize> {
+    id: u32,
+    j: SMatrix<Lanes, Q, N>,
+    j_tr: SMatrix<Lanes, N, Q>,
+    m: SMatrix<Lanes, Q, Q>,
+    /// The lower Cholesky factor of `M` and `log det M`.
+    m_factor: SMatrix<Lanes, Q, Q>,
+    m_log_det: f64,
+}
+
+/// The terms of the last [`LaneTerms::score`] and the parameter set they were scored with.
+pub struct LaneTerms<const N: usize, const Q: usize> {
+    set: Option<LaneSet<N, Q>>,
+    /// The terms of the lanes.
+    pub terms: [Term; LANES],
+    /// The standardised innovations of each lane.
+    pub eps: [[f64; Q]; LANES],
+}
+
+/// `b ← L⁻¹ b` for a lower triangular `L` (forward substitution, column by column).
+fn forward<const Q: usize, const C: usize>(l: &SMatrix<Lanes, Q, Q>, b: &mut SMatrix<Lanes, Q, C>) {
+    for c in 0..C {
+        for i in 0..Q {
+            let coeff = b[(i, c)] / l[(i, i)];
+            b[(i, c)] = coeff;
+            for r in i + 1..Q {
+                b[(r, c)] -= l[(r, i)] * coeff;
+            }
+        }
+    }
+}
+
+/// The lower Cholesky factor of `a` in every lane, or `None` when `a` is not positive
+/// definite in some lane.
+fn factor<const Q: usize>(a: SMatrix<Lanes, Q, Q>) -> Option<SMatrix<Lanes, Q, Q>> {
+    let l = Cholesky::new_unchecked(a).unpack_dirty();
+    let zero = Lanes::splat(0.0);
+    (0..Q).all(|k| l[(k, k)].simd_gt(zero).all()).then_some(l)
+}
+
+/// `log det (L Lᵀ)` of lane `lane`.
+fn log_det<const Q: usize>(l: &SMatrix<Lanes, Q, Q>, lane: usize) -> f64 {
+    (0..Q).map(|k| 2.0 * l[(k, k)].extract(lane).ln()).sum()
+}
+
+/// `Σ_k v_k²` per lane.
+fn squares<const Q: usize>(v: &SVector<Lanes, Q>) -> Lanes {
+    v.iter().fold(Lanes::splat(0.0), |acc, &x| acc + x * x)
+}
+
+impl<const N: usize, const Q: usize> Default for LaneTerms<N, Q> {
+    fn default() -> Self {
+        Self {
+            set: None,
+            terms: [Term::UNSCORED; LANES],
+            eps: [[f64::NAN; Q]; LANES],
+        }
+    }
+}
+
+impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
+    /// The matrices of parameter set `id` (kept while consecutive calls use the same set);
+    /// `None` when `M` is not positive definite.
+    fn set(&mut self, id: u32, prm: &Params) -> Option<&LaneSet<N, Q>> {
+        if self.set.as_ref().is_none_or(|s| s.id != id) {
+            let j = SMatrix::<f64, Q, N>::from_column_slice(prm.J.as_slice());
+            let m = SMatrix::<f64, Q, Q>::from_column_slice(prm.M.as_slice());
+            let m_factor = m.cholesky()?.unpack();
+            self.set = Some(LaneSet {
+                id,
+                j: j.map(Lanes::splat),
+                j_tr: j.transpose().map(Lanes::splat),
+                m: m.map(Lanes::splat),
+                m_log_det: (0..Q).map(|k| 2.0 * m_factor[(k, k)].ln()).sum(),
+                m_factor: m_factor.map(Lanes::splat),
+            });
+        }
+        self.set.as_ref()
+    }
+
+    /// The terms of `LANES` consecutive subsystems of parameter set `id` ([`super::term`]'s
+    /// formulas, docs/theory.md §14) into [`Self::terms`] and [`Self::eps`]: `p` their
+    /// arrival probabilities, `mean`, `cov`, `y` and `ru` their priors, measurements (every
+    /// row in the data) and `R u`, one subsystem after the other. `false` when a covariance
+    /// is not positive definite in some lane (nothing is written then).
+    #[allow(clippy::too_many_arguments)]
+    pub fn score(
+        &mut self,
+        kind: TermKind,
+        id: u32,
+        prm: &Params,
+        p: [f64; LANES],
+        mean: &[f64],
+        cov: &[f64],
+        y: &[f64],
+        ru: &[f64],
+    ) -> bool {
+        let Some(set) = self.set(id, prm) else {
+            return false;
+        };
+        let jm = set.j * gather::<N, 1>(mean);
+        let s1 = set.j * gather::<N, N>(cov) * set.j_tr + set.m;
+        let e0 = gather::<Q, 1>(y) - gather::<Q, 1>(ru);
+        let mut w = e0 - jm;
+        let Some(l1) = factor(s1) else {
+            return false;
+        };
+        forward(&l1, &mut w);
+        let q = Q as f64;
+        let log_density = |l_log_det: f64, white: f64| -0.5 * (q * LN_2PI + l_log_det + white);
+        let two_q = Lanes::splat(2.0 * q);
+        let (nis, variance, eps, arrival) = match kind {
+            TermKind::Gaussian => (squares(&w), two_q, w, None),
+            TermKind::Nahi | TermKind::Mixture => {
+                let mut w0 = e0;
+                forward(&set.m_factor, &mut w0);
+                let (white1, white0) = (squares(&w), squares(&w0));
+                let pi = Lanes::from(std::array::from_fn(|l| {
+                    let ell1 = log_density(log_det(&l1, l), white1.extract(l));
+                    let ell0 = log_density(set.m_log_det, white0.extract(l));
+                    Arrival::weigh(p[l], ell0, ell1).probability
+                }));
+                let one = Lanes::splat(1.0);
+                if kind == TermKind::Mixture {
+                    let eps = w * pi + w0 * (one - pi);
+                    (pi * white1 + (one - pi) * white0, two_q, eps, Some(pi))
+                } else {
+                    let Some((nis, variance, eps)) = nahi(set, Lanes::from(p), &s1, &jm, &e0)
+                    else {
+                        return false;
+                    };
+                    (nis, variance, eps, Some(pi))
+                }
+            }
+        };
+        for l in 0..LANES {
+            self.terms[l] = Term {
+                nis: nis.extract(l),
+                variance: variance.extract(l),
+                received: Q,
+                arrival: arrival.map(|a| a.extract(l)),
+            };
+            self.eps[l] = std::array::from_fn(|k| eps[k].extract(l));
+        }
+        true
+    }
+}
+
+/// Nahi's two-component measurement ([`super::term`], docs/theory.md §14): the NIS against
+/// `Σ_y = p S₁ + (1−p) M + p(1−p) (J m)(J m)ᵀ`, its variance from the two components, and the
+/// standardised innovation.
+fn nahi<const N: usize, const Q: usize>(
+    set: &LaneSet<N, Q>,
+    p: Lanes,
+    s1: &SMatrix<Lanes, Q, Q>,
+    jm: &SVector<Lanes, Q>,
+    e0: &SVector<Lanes, Q>,
+) -> Option<(Lanes, Lanes, SVector<Lanes, Q>)> {
+    let one = Lanes::splat(1.0);
+    let sigma_y = s1 * p + set.m * (one - p) + jm * jm.transpose() * (p * (one - p));
+    let ly = factor(sigma_y)?;
+    let mut w = e0 - jm * p;
+    forward(&ly, &mut w);
+    let mut moments = [(Lanes::splat(0.0), Lanes::splat(0.0)); 2];
+    for (slot, (c, shift)) in [(s1, one - p), (&set.m, -p)].into_iter().enumerate() {
+        let mut x = *c;
+        forward(&ly, &mut x);
+        x = x.transpose();
+        forward(&ly, &mut x);
+        let mut w0 = jm * shift;
+        forward(&ly, &mut w0);
+        let quad = (w0.transpose() * x * w0)[(0, 0)];
+        let trace = (0..Q).fold(Lanes::splat(0.0), |acc, k| acc + x[(k, k)]);
+        let frobenius = x.iter().fold(Lanes::splat(0.0), |acc, &v| acc + v * v);
+        moments[slot] = (
+            trace + squares(&w0),
+            Lanes::splat(2.0) * frobenius + Lanes::splat(4.0) * quad,
+        );
+    }
+    let [(e1, v1), (e0m, v0)] = moments;
+    let q = Lanes::splat(Q as f64);
+    let variance = p * (v1 + e1 * e1) + (one - p) * (v0 + e0m * e0m) - q * q;
+    Some((squares(&w), variance, w))
+}
