@@ -5,7 +5,8 @@
 //! Both compute exactly the formulas of [`crate::filter::nahi`] (docs/theory.md §4).
 //!
 //! [`FixedKernel`] also updates and predicts [`LANES`] subsystems at once
-//! ([`LocalKernel::update_lanes`], [`LocalKernel::propagate_lanes`]): the same nalgebra
+//! ([`LocalKernel::update_lanes`], [`LocalKernel::mixture_lanes`],
+//! [`LocalKernel::propagate_lanes`]): the same nalgebra
 //! expressions over a scalar that holds one value per subsystem (simba's `WideF64x4`), so
 //! each lane gets the bits the one-subsystem path gives it, while the four independent chains
 //! of arithmetic run side by side in SIMD registers instead of one after another.
@@ -140,6 +141,41 @@ pub trait LocalKernel: Clone + Send + Sync + Sized {
                 return false;
             };
             log_densities[l] = log_density;
+        }
+        true
+    }
+    /// [`LocalKernel::mixture_update`] of [`LANES`] consecutive subsystems of parameter set
+    /// `set`, every row of their measurements in the data, laid out as in
+    /// [`LocalKernel::update_lanes`]; each lane's `π` into `arrival` and log density into
+    /// `log_densities`, the bits [`LocalKernel::mixture_update`] gives it. Returns `false`
+    /// when `S₁` or `M` is not positive definite in some lane. By default one subsystem after
+    /// the other.
+    #[allow(clippy::too_many_arguments)]
+    fn mixture_lanes(
+        &mut self,
+        set: u32,
+        data: &LaneData,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+        arrival: &mut [f64],
+        log_densities: &mut [f64],
+    ) -> bool {
+        let (n, nn) = (x_pred.len() / LANES, t_pred.len() / LANES);
+        for l in 0..LANES {
+            let Some(a) = self.mixture_update(
+                set,
+                &data.lane(l),
+                &x_pred[l * n..(l + 1) * n],
+                &t_pred[l * nn..(l + 1) * nn],
+                &mut x_filt[l * n..(l + 1) * n],
+                &mut p_filt[l * nn..(l + 1) * nn],
+            ) else {
+                return false;
+            };
+            arrival[l] = a.probability;
+            log_densities[l] = a.loglik;
         }
         true
     }
@@ -421,17 +457,46 @@ fn gain<T: SimdRealField + Copy, const N: usize, const Q: usize>(
     t: &SMatrix<T, N, N>,
 ) -> Option<GainAndFactor<T, N, Q>> {
     let ht = h * t;
-    let chol = Cholesky::new_unchecked(ht * h.transpose() + reff);
-    let zero = T::zero();
-    // A pivot that is zero, negative or NaN leaves a diagonal element that is not > 0.
-    if !(0..Q).all(|k| chol.l_dirty()[(k, k)].simd_gt(zero).all()) {
-        return None;
-    }
+    let chol = factor(ht * h.transpose() + reff)?;
     let l = chol.solve(&ht).transpose(); // W = Σ⁻¹ H T, L = Wᵀ
     let f = SMatrix::<T, N, N>::identity() - l * h;
     let mut pf = f * t * f.transpose() + l * reff * l.transpose();
     symmetrize(&mut pf);
     Some((l, pf, chol))
+}
+
+/// The mixture update's `x̂(t|t)` and `P(t|t)` from the prior `x̂`, `T`, `J T`, the factor
+/// of `S₁`, `e = y − R u − J x̂` and `π` (docs/theory.md §10, as in
+/// [`nahi::mixture_update`]): `Kᵀ = S₁⁻¹ J T`, `g = K e`, `x̂ + π g` and
+/// `T − π K J T + π(1−π) g gᵀ`, symmetrised.
+#[inline(always)]
+fn mixture_moments<T: SimdRealField + Copy, const N: usize, const Q: usize>(
+    x: &SVector<T, N>,
+    t: &SMatrix<T, N, N>,
+    jt: &SMatrix<T, Q, N>,
+    s1: &Cholesky<T, Const<Q>>,
+    e: &SVector<T, Q>,
+    pi: T,
+) -> (SVector<T, N>, SMatrix<T, N, N>) {
+    let k_tr = s1.solve(jt);
+    let g = k_tr.transpose() * e;
+    let mut pf = t - k_tr.transpose() * jt * pi + g * g.transpose() * (pi * (T::one() - pi));
+    symmetrize(&mut pf);
+    (x + g * pi, pf)
+}
+
+/// The lower Cholesky factor of `a`, as [`gain`] makes it; `None` when `a` is not positive
+/// definite in some lane.
+#[inline(always)]
+fn factor<T: SimdRealField + Copy, const Q: usize>(
+    a: SMatrix<T, Q, Q>,
+) -> Option<Cholesky<T, Const<Q>>> {
+    let chol = Cholesky::new_unchecked(a);
+    let zero = T::zero();
+    // A pivot that is zero, negative or NaN leaves a diagonal element that is not > 0.
+    (0..Q)
+        .all(|k| chol.l_dirty()[(k, k)].simd_gt(zero).all())
+        .then_some(chol)
 }
 
 /// `x̂ + L (y − R u − H x̂)`, the innovation `y − R u − H x̂` beside it.
@@ -646,20 +711,60 @@ impl<const N: usize, const Q: usize> LocalKernel for FixedKernel<N, Q> {
         }
         let e = e0 - j * x;
         let jt = j * t;
-        let s1 = (jt * j.transpose() + m).cholesky()?;
+        let s1 = factor(jt * j.transpose() + m)?;
         let correction = 0.5 * dropped as f64 * nahi::LN_2PI;
         let ell0 = log_gaussian(m_factor.as_ref()?, &e0)? + correction;
         let ell1 = log_gaussian(s1.l_dirty(), &e)? + correction;
         let arrival = nahi::Arrival::weigh(data.p, ell0, ell1);
-        let pi = arrival.probability;
-        // Kᵀ = S₁⁻¹ J T and g = K e, as in nahi::mixture_update.
-        let k_tr = s1.solve(&jt);
-        let g = k_tr.transpose() * e;
-        let mut pf = t - k_tr.transpose() * jt * pi + g * g.transpose() * (pi * (1.0 - pi));
-        symmetrize(&mut pf);
+        let (xf, pf) = mixture_moments(&x, &t, &jt, &s1, &e, arrival.probability);
         p_filt.copy_from_slice(pf.as_slice());
-        x_filt.copy_from_slice((x + g * pi).as_slice());
+        x_filt.copy_from_slice(xf.as_slice());
         Some(arrival)
+    }
+
+    fn mixture_lanes(
+        &mut self,
+        set: u32,
+        data: &LaneData,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+        arrival: &mut [f64],
+        log_densities: &mut [f64],
+    ) -> bool {
+        let FixedSet {
+            lanes: prm,
+            m_factor: Some(m_factor),
+            ..
+        } = &self.sets[set as usize]
+        else {
+            return false;
+        };
+        let t = gather::<N, N>(t_pred);
+        let x = gather::<N, 1>(x_pred);
+        let e0 = gather::<Q, 1>(data.y) - gather::<Q, 1>(data.ru);
+        let e = e0 - prm.j * x;
+        let jt = prm.j * t;
+        let Some(s1) = factor(jt * prm.j.transpose() + prm.m) else {
+            return false;
+        };
+        // The log densities per lane, with the one-subsystem path's arithmetic.
+        let mut pi = [0.0; LANES];
+        for l in 0..LANES {
+            let (Some(ell0), Some(ell1)) = (
+                log_gaussian(m_factor, &lane(&e0, l)),
+                log_gaussian(&lane(s1.l_dirty(), l), &lane(&e, l)),
+            ) else {
+                return false;
+            };
+            let a = nahi::Arrival::weigh(data.p[l], ell0, ell1);
+            (pi[l], arrival[l], log_densities[l]) = (a.probability, a.probability, a.loglik);
+        }
+        let (xf, pf) = mixture_moments(&x, &t, &jt, &s1, &e, Lanes::from(pi));
+        scatter(&xf, x_filt);
+        scatter(&pf, p_filt);
+        true
     }
 
     #[inline]

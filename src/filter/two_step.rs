@@ -242,7 +242,7 @@ fn second_moments<K: LocalKernel>(
 /// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of subsystems
 /// `first..first + x_filt.len() / n` (0-based). The subsystems are taken in runs of one
 /// parameter set, and in each run [`LANES`] at a time where every row is in the data
-/// ([`LocalKernel::update_lanes`], the same bits). Returns the first subsystem whose `Σ` is
+/// ([`LocalKernel::update_lanes`], [`LocalKernel::mixture_lanes`]: the same bits). Returns the first subsystem whose `Σ` is
 /// not positive definite.
 #[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
@@ -262,7 +262,7 @@ fn update_range<K: LocalKernel>(
     let window = model.window(inp.t);
     let p = |i: usize| if inp.known { 1.0 } else { window.p[i] };
     let count = x_filt.len() / n;
-    let in_lanes = !inp.mixture && inp.shared.is_none();
+    let in_lanes = inp.shared.is_none();
     let mut k = 0;
     while k < count {
         let start = first + k;
@@ -290,16 +290,22 @@ fn update_range<K: LocalKernel>(
                     },
                     known: inp.known,
                 };
-                wk.kernel.update_lanes(
-                    set,
-                    &data,
-                    &wk.s_buf[j * nn..(j + LANES) * nn],
+                let (x_pred, t_pred) = (
                     &inp.x_pred[i * n..(i + LANES) * n],
                     &inp.t_pred[i * nn..(i + LANES) * nn],
-                    &mut x_filt[k * n..(k + LANES) * n],
-                    &mut p_filt[k * nn..(k + LANES) * nn],
-                    &mut log_densities[k..k + LANES],
-                )
+                );
+                let xf = &mut x_filt[k * n..(k + LANES) * n];
+                let pf = &mut p_filt[k * nn..(k + LANES) * nn];
+                let densities = &mut log_densities[k..k + LANES];
+                if inp.mixture {
+                    let arrival = &mut arrival[k..k + LANES];
+                    let kernel = &mut wk.kernel;
+                    kernel.mixture_lanes(set, &data, x_pred, t_pred, xf, pf, arrival, densities)
+                } else {
+                    let s = &wk.s_buf[j * nn..(j + LANES) * nn];
+                    wk.kernel
+                        .update_lanes(set, &data, s, x_pred, t_pred, xf, pf, densities)
+                }
             } {
                 LANES
             } else {

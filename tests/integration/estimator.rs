@@ -349,9 +349,10 @@ fn fixed_size_kernels_equal_dynamic_kernel() {
 }
 
 /// The fixed-size kernel's lanes (`LANES` subsystems at once) give each subsystem the bits of
-/// its one-subsystem update and prediction, in both dropout modes, with arrival probabilities
-/// that differ between lanes (`p = 1` among them); a lane whose `Σ` is not positive definite
-/// fails the lanes, and the one-subsystem update names it.
+/// its one-subsystem update (Nahi's in both dropout modes, the mixture update) and
+/// prediction, with arrival probabilities that differ between lanes (`p = 1` among them); a
+/// lane whose `Σ` or `S₁` is not positive definite fails the lanes, and the one-subsystem
+/// update names it.
 #[test]
 fn kernel_lanes_equal_one_subsystem_at_a_time() {
     use sisfilt::filter::kernel::{FixedKernel, LANES, LaneData, LocalKernel};
@@ -434,6 +435,45 @@ fn kernel_lanes_equal_one_subsystem_at_a_time() {
                 .is_none()
         );
     }
+    // The mixture update (unknown dropouts): the same bits, π and log density per lane.
+    let data = LaneData {
+        y: &y,
+        ru: &ru,
+        p,
+        known: false,
+    };
+    let (mut xf, mut pf) = (vec![0.0; LANES * n], vec![0.0; LANES * n * n]);
+    let (mut pi, mut ld) = ([0.0; LANES], [0.0; LANES]);
+    assert!(kernel.mixture_lanes(
+        0, &data, &x_pred, &t_pred, &mut xf, &mut pf, &mut pi, &mut ld
+    ));
+    for l in 0..LANES {
+        let (v, m) = (l * n..(l + 1) * n, l * n * n..(l + 1) * n * n);
+        let (mut x1, mut p1) = ([0.0; 2], [0.0; 4]);
+        let a = kernel
+            .mixture_update(
+                0,
+                &data.lane(l),
+                &x_pred[v.clone()],
+                &t_pred[m.clone()],
+                &mut x1,
+                &mut p1,
+            )
+            .unwrap();
+        let bits = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(bits(&xf[v], &x1) && bits(&pf[m], &p1), "mixture lane {l}");
+        assert!(
+            bits(&[pi[l], ld[l]], &[a.probability, a.loglik]),
+            "mixture lane {l}"
+        );
+    }
+    let mut broken = t_pred.clone();
+    broken[n * n..2 * n * n]
+        .iter_mut()
+        .for_each(|v| *v *= -10.0);
+    assert!(!kernel.mixture_lanes(
+        0, &data, &x_pred, &broken, &mut xf, &mut pf, &mut pi, &mut ld
+    ));
     for with_q in [false, true] {
         let mut out = vec![0.0; LANES * n * n];
         kernel.propagate_lanes(0, with_q, &t_pred, &mut out);
