@@ -72,9 +72,10 @@ pub trait TermScorer: Send {
     /// data).
     fn eps(&self) -> &[f64];
     /// The terms of [`LANES`] consecutive subsystems of parameter set `id`, every row of
-    /// their measurements in the data ([`LaneTerms::score`]; `p`, `mean`, `cov`, `y` and `ru`
-    /// one subsystem after the other), read with [`TermScorer::lane`]. `false` when they are
-    /// to be scored one at a time: a covariance not positive definite, or runtime sizes.
+    /// their measurements in the data (the formulas of [`TermScorer::term`], four at once;
+    /// `p`, `mean`, `cov`, `y` and `ru` one subsystem after the other), read with
+    /// [`TermScorer::lane`]. `false` when they are to be scored one at a time: a covariance
+    /// not positive definite, or runtime sizes.
     #[allow(clippy::too_many_arguments)]
     fn score_lanes(
         &mut self,
