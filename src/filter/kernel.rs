@@ -488,7 +488,7 @@ fn mixture_moments<T: SimdRealField + Copy, const N: usize, const Q: usize>(
 /// The lower Cholesky factor of `a`, as [`gain`] makes it; `None` when `a` is not positive
 /// definite in some lane.
 #[inline(always)]
-fn factor<T: SimdRealField + Copy, const Q: usize>(
+pub(crate) fn factor<T: SimdRealField + Copy, const Q: usize>(
     a: SMatrix<T, Q, Q>,
 ) -> Option<Cholesky<T, Const<Q>>> {
     let chol = Cholesky::new_unchecked(a);

@@ -3,9 +3,9 @@
 //! one value per subsystem, so that the square roots and divisions of the four factors run
 //! side by side instead of one chain after another (docs/theory.md §14).
 
-use nalgebra::{Cholesky, SMatrix, SVector, SimdBool, SimdPartialOrd, SimdValue};
+use nalgebra::{SMatrix, SVector, SimdValue};
 
-use crate::filter::kernel::{LANES, Lanes, gather};
+use crate::filter::kernel::{self, LANES, Lanes, gather};
 use crate::filter::nahi::{Arrival, LN_2PI};
 use crate::model::Params;
 
@@ -44,12 +44,10 @@ fn forward<const Q: usize, const C: usize>(l: &SMatrix<Lanes, Q, Q>, b: &mut SMa
     }
 }
 
-/// The lower Cholesky factor of `a` in every lane, or `None` when `a` is not positive
-/// definite in some lane.
+/// The lower Cholesky factor of `a` in every lane (its upper triangle not to be read), or
+/// `None` when `a` is not positive definite in some lane.
 fn factor<const Q: usize>(a: SMatrix<Lanes, Q, Q>) -> Option<SMatrix<Lanes, Q, Q>> {
-    let l = Cholesky::new_unchecked(a).unpack_dirty();
-    let zero = Lanes::splat(0.0);
-    (0..Q).all(|k| l[(k, k)].simd_gt(zero).all()).then_some(l)
+    kernel::factor(a).map(|chol| chol.unpack_dirty())
 }
 
 /// `log det (L Lᵀ)` of lane `lane`.
