@@ -139,10 +139,12 @@ pub struct TwoStepFilter<K: LocalKernel = DynamicKernel> {
 struct Worker<K> {
     kernel: K,
     /// `S` of the current run of subsystems (`n × n` each), and a matrix for the lifted
-    /// moments; `R u`, the moment covariances and means of the run.
+    /// moments.
     s_buf: Vec<f64>,
     s_mat: DMatrix<f64>,
+    /// `R u` of the run.
     ru: Vec<f64>,
+    /// The run's moment covariances and means before their prediction.
     cov: Vec<f64>,
     mean: Vec<f64>,
 }
@@ -242,8 +244,8 @@ fn second_moments<K: LocalKernel>(
 /// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of subsystems
 /// `first..first + x_filt.len() / n` (0-based). The subsystems are taken in runs of one
 /// parameter set, and in each run [`LANES`] at a time where every row is in the data
-/// ([`LocalKernel::update_lanes`], [`LocalKernel::mixture_lanes`]: the same bits). Returns the first subsystem whose `Σ` is
-/// not positive definite.
+/// ([`LocalKernel::update_lanes`], [`LocalKernel::mixture_lanes`]: the same bits). Returns
+/// the first subsystem whose `Σ` is not positive definite.
 #[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,

@@ -6,7 +6,6 @@
 use nalgebra::{SMatrix, SVector, SimdValue};
 
 use crate::filter::kernel::{self, LANES, Lanes, gather};
-use crate::filter::nahi::{Arrival, LN_2PI};
 use crate::model::Params;
 
 use super::term::{Term, TermKind};
@@ -17,9 +16,8 @@ struct LaneSet<const N: usize, const Q: usize> {
     j: SMatrix<Lanes, Q, N>,
     j_tr: SMatrix<Lanes, N, Q>,
     m: SMatrix<Lanes, Q, Q>,
-    /// The lower Cholesky factor of `M` and `log det M`.
+    /// The lower Cholesky factor of `M`.
     m_factor: SMatrix<Lanes, Q, Q>,
-    m_log_det: f64,
 }
 
 /// The terms of the last [`LaneTerms::score`] and the parameter set they were scored with.
@@ -50,9 +48,32 @@ fn factor<const Q: usize>(a: SMatrix<Lanes, Q, Q>) -> Option<SMatrix<Lanes, Q, Q
     kernel::factor(a).map(|chol| chol.unpack_dirty())
 }
 
-/// `log det (L Lᵀ)` of lane `lane`.
-fn log_det<const Q: usize>(l: &SMatrix<Lanes, Q, Q>, lane: usize) -> f64 {
-    (0..Q).map(|k| 2.0 * l[(k, k)].extract(lane).ln()).sum()
+/// `π = p e^ℓ₁ / (p e^ℓ₁ + (1−p) e^ℓ₀)` from the factors `L₁` of `S₁` and `L₀` of `M` and the
+/// squared norms `|L₁⁻¹ e|²`, `|L₀⁻¹ e₀|²` (docs/theory.md §10, as `Arrival::weigh` gives
+/// it): with `ℓ₀ − ℓ₁ = ½(|L₁⁻¹ e|² − |L₀⁻¹ e₀|²) + log(∏ L₁,kk / ∏ L₀,kk)`,
+/// `π = 1 / (1 + (1−p)/p · ∏ L₁,kk / ∏ L₀,kk · exp(½(|L₁⁻¹ e|² − |L₀⁻¹ e₀|²)))`, one
+/// exponential per lane instead of logarithms and exponentials; 0 for `p ≤ 0`, 1 for `p ≥ 1`.
+fn arrival<const Q: usize>(
+    p: [f64; LANES],
+    l1: &SMatrix<Lanes, Q, Q>,
+    l0: &SMatrix<Lanes, Q, Q>,
+    white1: Lanes,
+    white0: Lanes,
+) -> Lanes {
+    let diagonal =
+        |l: &SMatrix<Lanes, Q, Q>| (0..Q).fold(Lanes::splat(1.0), |acc, k| acc * l[(k, k)]);
+    let ratio = diagonal(l1) / diagonal(l0);
+    let half = (white1 - white0) * Lanes::splat(0.5);
+    Lanes::from(std::array::from_fn(|l| {
+        let p = p[l];
+        if p <= 0.0 {
+            0.0
+        } else if p >= 1.0 {
+            1.0
+        } else {
+            1.0 / (1.0 + (1.0 - p) / p * ratio.extract(l) * half.extract(l).exp())
+        }
+    }))
 }
 
 /// `Σ_k v_k²` per lane.
@@ -83,7 +104,6 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
                 j: j.map(Lanes::splat),
                 j_tr: j.transpose().map(Lanes::splat),
                 m: m.map(Lanes::splat),
-                m_log_det: (0..Q).map(|k| 2.0 * m_factor[(k, k)].ln()).sum(),
                 m_factor: m_factor.map(Lanes::splat),
             });
         }
@@ -118,20 +138,14 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
             return false;
         };
         forward(&l1, &mut w);
-        let q = Q as f64;
-        let log_density = |l_log_det: f64, white: f64| -0.5 * (q * LN_2PI + l_log_det + white);
-        let two_q = Lanes::splat(2.0 * q);
+        let two_q = Lanes::splat(2.0 * Q as f64);
         let (nis, variance, eps, arrival) = match kind {
             TermKind::Gaussian => (squares(&w), two_q, w, None),
             TermKind::Nahi | TermKind::Mixture => {
                 let mut w0 = e0;
                 forward(&set.m_factor, &mut w0);
                 let (white1, white0) = (squares(&w), squares(&w0));
-                let pi = Lanes::from(std::array::from_fn(|l| {
-                    let ell1 = log_density(log_det(&l1, l), white1.extract(l));
-                    let ell0 = log_density(set.m_log_det, white0.extract(l));
-                    Arrival::weigh(p[l], ell0, ell1).probability
-                }));
+                let pi = arrival(p, &l1, &set.m_factor, white1, white0);
                 let one = Lanes::splat(1.0);
                 if kind == TermKind::Mixture {
                     let eps = w * pi + w0 * (one - pi);
