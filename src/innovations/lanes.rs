@@ -60,9 +60,7 @@ fn arrival<const Q: usize>(
     white1: Lanes,
     white0: Lanes,
 ) -> Lanes {
-    let diagonal =
-        |l: &SMatrix<Lanes, Q, Q>| (0..Q).fold(Lanes::splat(1.0), |acc, k| acc * l[(k, k)]);
-    let ratio = diagonal(l1) / diagonal(l0);
+    let ratio = l1.diagonal().product() / l0.diagonal().product();
     let half = (white1 - white0) * Lanes::splat(0.5);
     Lanes::from(std::array::from_fn(|l| {
         let p = p[l];
@@ -74,11 +72,6 @@ fn arrival<const Q: usize>(
             1.0 / (1.0 + (1.0 - p) / p * ratio.extract(l) * half.extract(l).exp())
         }
     }))
-}
-
-/// `Σ_k v_k²` per lane.
-fn squares<const Q: usize>(v: &SVector<Lanes, Q>) -> Lanes {
-    v.iter().fold(Lanes::splat(0.0), |acc, &x| acc + x * x)
 }
 
 impl<const N: usize, const Q: usize> Default for LaneTerms<N, Q> {
@@ -140,11 +133,11 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
         forward(&l1, &mut w);
         let two_q = Lanes::splat(2.0 * Q as f64);
         let (nis, variance, eps, arrival) = match kind {
-            TermKind::Gaussian => (squares(&w), two_q, w, None),
+            TermKind::Gaussian => (w.norm_squared(), two_q, w, None),
             TermKind::Nahi | TermKind::Mixture => {
                 let mut w0 = e0;
                 forward(&set.m_factor, &mut w0);
-                let (white1, white0) = (squares(&w), squares(&w0));
+                let (white1, white0) = (w.norm_squared(), w0.norm_squared());
                 let pi = arrival(p, &l1, &set.m_factor, white1, white0);
                 let one = Lanes::splat(1.0);
                 if kind == TermKind::Mixture {
@@ -196,15 +189,13 @@ fn nahi<const N: usize, const Q: usize>(
         let mut w0 = jm * shift;
         forward(&ly, &mut w0);
         let quad = (w0.transpose() * x * w0)[(0, 0)];
-        let trace = (0..Q).fold(Lanes::splat(0.0), |acc, k| acc + x[(k, k)]);
-        let frobenius = x.iter().fold(Lanes::splat(0.0), |acc, &v| acc + v * v);
         moments[slot] = (
-            trace + squares(&w0),
-            Lanes::splat(2.0) * frobenius + Lanes::splat(4.0) * quad,
+            x.trace() + w0.norm_squared(),
+            Lanes::splat(2.0) * x.norm_squared() + Lanes::splat(4.0) * quad,
         );
     }
     let [(e1, v1), (e0m, v0)] = moments;
     let q = Lanes::splat(Q as f64);
     let variance = p * (v1 + e1 * e1) + (one - p) * (v0 + e0m * e0m) - q * q;
-    Some((squares(&w), variance, w))
+    Some((w.norm_squared(), variance, w))
 }
