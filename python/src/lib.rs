@@ -434,8 +434,8 @@ struct Estimates {
     #[pyo3(get)]
     kind: String,
     /// Seconds the library spent taking the steps from the arrays (`read`), filtering
-    /// (`filter`) and collecting the estimates (`write`), and its whole run (`run`: those and
-    /// the run's setup and checks).
+    /// (`filter`), scoring the innovations (`check`) and collecting the estimates (`write`),
+    /// and its whole run (`run`: those and the run's setup and checks).
     #[pyo3(get)]
     timings: Py<PyAny>,
 }
@@ -588,6 +588,7 @@ fn estimate(
             let d = PyDict::new(py);
             d.set_item("read", t.read.as_secs_f64())?;
             d.set_item("filter", t.filter.as_secs_f64())?;
+            d.set_item("check", t.check.as_secs_f64())?;
             d.set_item("write", t.write.as_secs_f64())?;
             d.set_item("run", run_seconds)?;
             d.into_any().unbind()

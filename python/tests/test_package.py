@@ -96,6 +96,9 @@ def test_loglik_and_innovations_equal_the_command_lines_json(cli, platoon_run):
                            filter="joint", update="mixture")
     assert est.loglik == doc["loglik"]
     assert est.innovations == doc["innovations"]
+    # The run's phases, the innovation check among them, within the whole run.
+    phases = [est.timings[k] for k in ("read", "filter", "check", "write")]
+    assert all(s >= 0 for s in phases) and sum(phases) <= est.timings["run"]
 
 
 def test_simulate_equals_the_command_line(cli, tmp_path):

@@ -99,9 +99,9 @@ pub struct EstimateArgs {
     /// the innovation check is printed on standard error (and kept in JSON) whatever.
     #[arg(long)]
     pub nis: bool,
-    /// Print on standard error the wall-clock time spent reading the input files, filtering
-    /// and handing the estimates to the writer thread, and the time that thread spent
-    /// formatting and writing them (a `timings:` line).
+    /// Print on standard error the wall-clock time spent reading the input files, filtering,
+    /// scoring the innovations and handing the estimates to the writer thread, and the time
+    /// that thread spent formatting and writing them (a `timings:` line).
     #[arg(long)]
     pub timings: bool,
     #[command(flatten)]
@@ -355,14 +355,17 @@ fn note_in_flag_words(note: &Note) -> String {
     }
 }
 
-/// `read R s, filter F s, write W s, other O s, total X s, K rows, Y rows/s` (`--timings`).
+/// `read R s, filter F s, check C s, write W s, other O s, total X s, K rows, Y rows/s`
+/// (`--timings`).
 fn timings_summary(timings: &Timings, total: std::time::Duration, rows: usize) -> String {
     let secs = |d: std::time::Duration| d.as_secs_f64();
-    let other = secs(total) - secs(timings.read) - secs(timings.filter) - secs(timings.write);
+    let phases = [timings.read, timings.filter, timings.check, timings.write];
+    let other = secs(total) - phases.into_iter().map(secs).sum::<f64>();
     format!(
-        "read {:.3} s, filter {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
+        "read {:.3} s, filter {:.3} s, check {:.3} s, write {:.3} s, other {:.3} s, total {:.3} s, {rows} rows, {:.0} rows/s",
         secs(timings.read),
         secs(timings.filter),
+        secs(timings.check),
         secs(timings.write),
         other.max(0.0),
         secs(total),

@@ -121,12 +121,14 @@ pub trait EstimateSink {
     fn note(&mut self, note: Note);
 }
 
-/// Wall-clock time a run spent in each phase: reading the inputs (source and truth), filtering
-/// and handing the estimates to the sink.
+/// Wall-clock time a run spent in each phase: reading the inputs (source and truth), filtering,
+/// scoring the innovations (docs/theory.md §14) and handing the estimates to the sink.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Timings {
     pub read: Duration,
     pub filter: Duration,
+    /// The innovation check, which every run makes beside its filter.
+    pub check: Duration,
     pub write: Duration,
 }
 
@@ -144,6 +146,10 @@ impl Timings {
 
     fn filter<R>(&mut self, f: impl FnOnce() -> R) -> R {
         Self::time(&mut self.filter, f)
+    }
+
+    fn check<R>(&mut self, f: impl FnOnce() -> R) -> R {
+        Self::time(&mut self.check, f)
     }
 
     /// Times `f` as time spent handing estimates on (a front end adds its own writing).
@@ -254,11 +260,9 @@ fn run_filter(
     let mut check = innovation_check(model, spec);
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
         model.blank_unmeasured(t, &mut y);
-        timings.filter(|| {
-            let (mean, cov) = filter.predicted();
-            check.step(t, mean, cov, &y, &u)?;
-            filter.step(&y, &u)
-        })?;
+        let (mean, cov) = filter.predicted();
+        timings.check(|| check.step(t, mean, cov, &y, &u))?;
+        timings.filter(|| filter.step(&y, &u))?;
         loglik += filter.log_likelihood().unwrap_or(0.0);
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
             warned_transfer = true;
@@ -338,11 +342,9 @@ fn run_smoother(
         if need > limit {
             return Err(RunError::OverMaxMemory { t, need, limit }.into());
         }
-        timings.filter(|| {
-            let (mean, cov) = smoother.prior();
-            check.step(t, mean, cov, &y, &u)?;
-            smoother.step(&y, &u)
-        })?;
+        let (mean, cov) = smoother.prior();
+        timings.check(|| check.step(t, mean, cov, &y, &u))?;
+        timings.filter(|| smoother.step(&y, &u))?;
         nis.extend_from_slice(check.nis());
         if let Some(pi) = smoother.arrival() {
             arrival.push(pi.to_vec());

@@ -733,6 +733,47 @@ fn two_runs_give_identical_output() {
     assert!(read(&fa) == read(&fb));
 }
 
+/// `--timings` splits the run into its phases: read, filter, the innovation check, write and
+/// the rest, which add up to the total, and counts the rows written.
+#[test]
+fn timings_split_the_run_into_its_phases() {
+    let config = shipped_config("platoon.toml");
+    let dir = tmp();
+    simulate(&config, dir.path(), &[]);
+    let out = ok(estimate(
+        &config,
+        &dir.path().join("measurements.csv"),
+        &["--timings"],
+    )
+    .arg("--out")
+    .arg(dir.path().join("estimates.csv")));
+    let stderr = text(&out.stderr);
+    let line = stderr
+        .lines()
+        .find_map(|l| l.strip_prefix("timings: "))
+        .unwrap_or_else(|| panic!("no timings line in: {stderr}"));
+    let fields: Vec<&str> = line.split(", ").collect();
+    let seconds = |name: &str| -> f64 {
+        let field = fields
+            .iter()
+            .find_map(|f| f.strip_prefix(name)?.strip_prefix(' '))
+            .unwrap_or_else(|| panic!("no {name} in: {line}"));
+        let value = field
+            .strip_suffix(" s")
+            .unwrap_or_else(|| panic!("{field}"));
+        value.parse().unwrap_or_else(|e| panic!("{field}: {e}"))
+    };
+    let phases = ["read", "filter", "check", "write", "other"].map(seconds);
+    assert!(phases.iter().all(|&s| s >= 0.0), "{line}");
+    // Each figure is rounded to the millisecond.
+    let total = seconds("total");
+    assert!(
+        (phases.iter().sum::<f64>() - total).abs() <= 0.003,
+        "{line}"
+    );
+    assert!(fields.contains(&"4000 rows"), "{line}");
+}
+
 // -------------------------------------------------------------- 5. bad measurement files
 
 /// A simulated platoon run (Q > 0, stable: no warnings) and its measurement lines.
