@@ -9,7 +9,7 @@ use nalgebra::{DMatrix, DVector};
 use crate::error::Result;
 use crate::interconnect::ChainSolver;
 use crate::linalg::band::GenBand;
-use crate::linalg::mat_vec_add;
+use crate::linalg::{mat_vec_add, mat_vec_add_blocks};
 use crate::model::Model;
 
 /// Scratch for [`apply_a_eff`] and [`propagate_mean`].
@@ -58,23 +58,24 @@ pub fn propagate_mean(
     ws.z.resize(big_n * s, 0.0);
     ws.v.resize(big_n * s, 0.0);
     let window = model.window(t);
-    for i in 0..big_n {
-        let p = model.param_set(window.ids[i]);
-        let zi = &mut ws.z[i * s..(i + 1) * s];
-        mat_vec_add(zi, &p.D, &x[i * n..(i + 1) * n]);
+    // A run of subsystems with one parameter set at a time (the same sums per subsystem).
+    for (run, id) in window.runs() {
+        let p = model.param_set(id);
+        let z = &mut ws.z[run.start * s..run.end * s];
+        mat_vec_add_blocks(z, &p.D, &x[run.start * n..run.end * n]);
         if let Some(u) = u {
-            mat_vec_add(zi, &p.H, &u[i * m..(i + 1) * m]);
+            mat_vec_add_blocks(z, &p.H, &u[run.start * m..run.end * m]);
         }
     }
     solver.solve(&ws.z, &mut ws.v, &mut ws.rhs);
-    out.iter_mut().for_each(|o| *o = 0.0);
-    for i in 0..big_n {
-        let p = model.param_set(window.ids[i]);
-        let oi = &mut out[i * n..(i + 1) * n];
-        mat_vec_add(oi, &p.A, &x[i * n..(i + 1) * n]);
-        mat_vec_add(oi, &p.B, &ws.v[i * s..(i + 1) * s]);
+    out.fill(0.0);
+    for (run, id) in window.runs() {
+        let p = model.param_set(id);
+        let o = &mut out[run.start * n..run.end * n];
+        mat_vec_add_blocks(o, &p.A, &x[run.start * n..run.end * n]);
+        mat_vec_add_blocks(o, &p.B, &ws.v[run.start * s..run.end * s]);
         if let Some(u) = u {
-            mat_vec_add(oi, &p.C, &u[i * m..(i + 1) * m]);
+            mat_vec_add_blocks(o, &p.C, &u[run.start * m..run.end * m]);
         }
     }
 }

@@ -150,6 +150,18 @@ pub struct Window {
     pub measured: Vec<bool>,
 }
 
+impl Window {
+    /// The runs of consecutive subsystems that share a parameter set, in chain order: their
+    /// 0-based range and the set.
+    pub fn runs(&self) -> impl Iterator<Item = (std::ops::Range<usize>, u32)> + '_ {
+        self.ids.chunk_by(|a, b| a == b).scan(0, |first, run| {
+            let start = *first;
+            *first += run.len();
+            Some((start..*first, run[0]))
+        })
+    }
+}
+
 /// The validated model, built once by [`Model::from_config`] (or [`Model::from_raw`]): a handle
 /// to its [`ModelData`], which it shares. A clone costs a reference count, so a filter or a
 /// smoother keeps a model of its own and borrows nothing, and a long-lived object in another
@@ -717,6 +729,23 @@ impl Model {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_windows_runs_cover_the_chain_in_order() {
+        let window = Window {
+            first: 1,
+            ids: vec![0, 0, 1, 1, 1, 0, 2],
+            p: vec![1.0; 7],
+            measured: vec![true; 7],
+        };
+        let runs: Vec<_> = window.runs().collect();
+        assert_eq!(runs, [(0..2, 0), (2..5, 1), (5..6, 0), (6..7, 2)]);
+        let empty = Window {
+            ids: vec![],
+            ..window
+        };
+        assert_eq!(empty.runs().count(), 0);
+    }
 
     /// `Model::load` and `Model::from_toml_str` build the same model from the same text, and
     /// messages name the config as it was given.
