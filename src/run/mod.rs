@@ -127,7 +127,8 @@ pub trait EstimateSink {
 pub struct Timings {
     pub read: Duration,
     pub filter: Duration,
-    /// The innovation check, which every run makes beside its filter.
+    /// The innovation check, which every run makes beside its filter: its running sums, and
+    /// their set-up and report.
     pub check: Duration,
     pub write: Duration,
 }
@@ -257,7 +258,7 @@ fn run_filter(
     let mut warned_transfer = false;
     let mut steps = 0;
     let mut timings = Timings::default();
-    let mut check = innovation_check(model, spec);
+    let mut check = timings.check(|| innovation_check(model, spec));
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
         model.blank_unmeasured(t, &mut y);
         let (mean, cov) = filter.predicted();
@@ -305,7 +306,7 @@ fn run_filter(
     timings.read(|| source.finish(steps))?;
     let summary = EstimatesSummary {
         loglik: filter.log_likelihood().map(|_| loglik),
-        innovations: Some(check.report()),
+        innovations: Some(timings.check(|| check.report())),
         ..scores.summary(truth.is_some(), filter.arrival().is_some())?
     };
     Ok(RunReport {
@@ -333,9 +334,9 @@ fn run_smoother(
     // The forward pass's π of every step (the mixture update) and its NIS: kept for the rows.
     let mut arrival: Vec<Vec<f64>> = Vec::new();
     let mut nis: Vec<f64> = Vec::new();
-    let mut check = innovation_check(model, spec);
     let mut steps = 0;
     let mut timings = Timings::default();
+    let mut check = timings.check(|| innovation_check(model, spec));
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
         model.blank_unmeasured(t, &mut y);
         let need = memory_bytes(model, kind, t);
@@ -377,10 +378,11 @@ fn run_smoother(
             scores.add(row, Some((x, p)), step.arrival);
         }
     }
+    let innovations = timings.check(|| check.report());
     Ok(RunReport {
         steps,
         summary: EstimatesSummary {
-            innovations: Some(check.report()),
+            innovations: Some(innovations),
             ..scores.summary(truth.is_some(), !arrival.is_empty())?
         },
         timings,
