@@ -8,7 +8,12 @@
 //! local predictions. On long chains the two local phases run in parallel over fixed chunks of
 //! subsystems (rayon), each chunk with its own preallocated kernel and scratch, so a step
 //! allocates nothing; each subsystem's arithmetic is the same whatever the thread count, so
-//! the results are too.
+//! the results are too. Where step 1 is solved in two halves (docs/theory.md §2), each half
+//! of the chain is one task from its updates to its predictions: it updates its subsystems,
+//! forward-solves its half, and after the seam between the halves back-substitutes and
+//! predicts its subsystems. A step then waits for the threads twice (at the seam and at its
+//! end) instead of at each phase, which costs tens of microseconds each where waking a parked
+//! thread is slow, and each half's data stays with the core that works on it.
 //!
 //! **Shared recursions.** The covariance recursions do not depend on the data, so subsystems
 //! with the same parameters share them (computed once per step, the same bits as computing
@@ -34,7 +39,7 @@ use crate::filter::{
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
 use crate::linalg::{add_outer_blocks, mat_vec_add_blocks};
-use crate::model::Model;
+use crate::model::{Dims, Model};
 use crate::run::check_update;
 
 /// Chains at least this long run the local phases in parallel, in chunks of [`CHUNK`]
@@ -240,23 +245,205 @@ fn second_moments<K: LocalKernel>(
     }
 }
 
+/// What the local updates write for a range of subsystems: per subsystem `x̂(t|t)`, `P(t|t)`,
+/// `z = D x̂ + H u` (`n`, `n²`, `s` values), the mixture update's `π` and the log density of
+/// the measurement (one each). `z` is empty when `s = 0`, `arrival` with the linear update.
+struct Updated<'a> {
+    x_filt: &'a mut [f64],
+    p_filt: &'a mut [f64],
+    z: &'a mut [f64],
+    arrival: &'a mut [f64],
+    log_densities: &'a mut [f64],
+}
+
+impl<'a> Updated<'a> {
+    fn reborrow(&mut self) -> Updated<'_> {
+        Updated {
+            x_filt: self.x_filt,
+            p_filt: self.p_filt,
+            z: self.z,
+            arrival: self.arrival,
+            log_densities: self.log_densities,
+        }
+    }
+
+    /// The first `i` subsystems and the rest.
+    fn split_at(self, i: usize, d: Dims) -> (Self, Self) {
+        let (n, s) = (d.n, d.s());
+        let (x1, x2) = self.x_filt.split_at_mut(i * n);
+        let (p1, p2) = self.p_filt.split_at_mut(i * n * n);
+        let (z1, z2) = split_or_empty(self.z, i * s);
+        let (a1, a2) = split_or_empty(self.arrival, i);
+        let (l1, l2) = self.log_densities.split_at_mut(i);
+        (
+            Updated {
+                x_filt: x1,
+                p_filt: p1,
+                z: z1,
+                arrival: a1,
+                log_densities: l1,
+            },
+            Updated {
+                x_filt: x2,
+                p_filt: p2,
+                z: z2,
+                arrival: a2,
+                log_densities: l2,
+            },
+        )
+    }
+
+    /// Consecutive chunks of `size` subsystems (the last may be shorter).
+    fn par_chunks(self, size: usize, d: Dims) -> impl IndexedParallelIterator<Item = Updated<'a>> {
+        let (n, s) = (d.n, d.s());
+        let count = self.log_densities.len().div_ceil(size);
+        self.x_filt
+            .par_chunks_mut(size * n)
+            .zip(self.p_filt.par_chunks_mut(size * n * n))
+            .zip(par_chunks_or_empty(self.z, size * s, count))
+            .zip(par_chunks_or_empty(self.arrival, size, count))
+            .zip(self.log_densities.par_chunks_mut(size))
+            .map(
+                |((((x_filt, p_filt), z), arrival), log_densities)| Updated {
+                    x_filt,
+                    p_filt,
+                    z,
+                    arrival,
+                    log_densities,
+                },
+            )
+    }
+}
+
+/// What the local predictions write for a range of subsystems: per subsystem `x̂(t+1|t)`,
+/// `T(t+1)` and the moment mean and covariance (`n`, `n²`, `n`, `n²` values); `moment_cov`
+/// is empty when it is shared or unused.
+struct Predicted<'a> {
+    x_pred: &'a mut [f64],
+    t_pred: &'a mut [f64],
+    moment_mean: &'a mut [f64],
+    moment_cov: &'a mut [f64],
+}
+
+impl<'a> Predicted<'a> {
+    /// The first `i` subsystems and the rest.
+    fn split_at(self, i: usize, d: Dims) -> (Self, Self) {
+        let n = d.n;
+        let (x1, x2) = self.x_pred.split_at_mut(i * n);
+        let (t1, t2) = self.t_pred.split_at_mut(i * n * n);
+        let (m1, m2) = self.moment_mean.split_at_mut(i * n);
+        let (c1, c2) = split_or_empty(self.moment_cov, i * n * n);
+        (
+            Predicted {
+                x_pred: x1,
+                t_pred: t1,
+                moment_mean: m1,
+                moment_cov: c1,
+            },
+            Predicted {
+                x_pred: x2,
+                t_pred: t2,
+                moment_mean: m2,
+                moment_cov: c2,
+            },
+        )
+    }
+
+    /// Consecutive chunks of `size` subsystems (the last may be shorter).
+    fn par_chunks(
+        self,
+        size: usize,
+        d: Dims,
+    ) -> impl IndexedParallelIterator<Item = Predicted<'a>> {
+        let n = d.n;
+        let count = self.x_pred.len().div_ceil(size * n);
+        self.x_pred
+            .par_chunks_mut(size * n)
+            .zip(self.t_pred.par_chunks_mut(size * n * n))
+            .zip(self.moment_mean.par_chunks_mut(size * n))
+            .zip(par_chunks_or_empty(self.moment_cov, size * n * n, count))
+            .map(|(((x_pred, t_pred), moment_mean), moment_cov)| Predicted {
+                x_pred,
+                t_pred,
+                moment_mean,
+                moment_cov,
+            })
+    }
+}
+
+/// `v.split_at_mut(at)`, or two empty slices when `v` is empty.
+fn split_or_empty(v: &mut [f64], at: usize) -> (&mut [f64], &mut [f64]) {
+    if v.is_empty() {
+        (&mut [], &mut [])
+    } else {
+        v.split_at_mut(at)
+    }
+}
+
+/// [`update_range`] of the subsystems in `out` (from `first`, 0-based): in parallel, in
+/// chunks of [`CHUNK`] subsystems with a worker each, or on the first worker alone.
+fn update_chunks<K: LocalKernel>(
+    inp: &UpdateInputs<K::Gain>,
+    workers: &mut [Worker<K>],
+    first: usize,
+    out: Updated<'_>,
+    parallel: bool,
+) -> FirstFailure {
+    if !parallel {
+        return update_range(inp, &mut workers[0], first, out);
+    }
+    workers
+        .par_iter_mut()
+        .zip(out.par_chunks(CHUNK, inp.model.dims))
+        .enumerate()
+        .filter_map(|(c, (wk, out))| update_range(inp, wk, first + c * CHUNK, out))
+        .min()
+}
+
+/// [`predict_range`] of the subsystems in `out` (from `first`, 0-based; `v` from `first`
+/// on), as [`update_chunks`] divides them.
+fn predict_chunks<K: LocalKernel>(
+    inp: &PredictInputs,
+    workers: &mut [Worker<K>],
+    first: usize,
+    v: &[f64],
+    out: Predicted<'_>,
+    parallel: bool,
+) -> FirstFailure {
+    if !parallel {
+        return predict_range(inp, &mut workers[0], first, v, out);
+    }
+    let s = inp.model.dims.s();
+    workers
+        .par_iter_mut()
+        .zip(out.par_chunks(CHUNK, inp.model.dims))
+        .enumerate()
+        .filter_map(|(c, (wk, out))| {
+            let v = &v[(c * CHUNK * s).min(v.len())..];
+            predict_range(inp, wk, first + c * CHUNK, v, out)
+        })
+        .min()
+}
+
 /// The local updates (Nahi's, or the mixture update with its `π` into `arrival`), each
-/// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of subsystems
-/// `first..first + x_filt.len() / n` (0-based). The subsystems are taken in runs of one
-/// parameter set, and in each run [`LANES`] at a time where every row is in the data
+/// measurement's log density into `log_densities`, and `z = D x̂ + H u`, of the subsystems
+/// in `out` (from `first`, 0-based). The subsystems are taken in runs of one parameter set,
+/// and in each run [`LANES`] at a time where every row is in the data
 /// ([`LocalKernel::update_lanes`], [`LocalKernel::mixture_lanes`]: the same bits). Returns
 /// the first subsystem whose `Σ` is not positive definite.
-#[allow(clippy::too_many_arguments)]
 fn update_range<K: LocalKernel>(
     inp: &UpdateInputs<K::Gain>,
     wk: &mut Worker<K>,
     first: usize,
-    x_filt: &mut [f64],
-    p_filt: &mut [f64],
-    z: &mut [f64],
-    arrival: &mut [f64],
-    log_densities: &mut [f64],
+    out: Updated<'_>,
 ) -> FirstFailure {
+    let Updated {
+        x_filt,
+        p_filt,
+        z,
+        arrival,
+        log_densities,
+    } = out;
     let model = inp.model;
     let d = model.dims;
     let (n, q, m, s) = (d.n, d.q, d.m, d.s());
@@ -369,22 +556,25 @@ struct PredictInputs<'a> {
     p_filt: &'a [f64],
     /// The shared `T(t+1)`, when every subsystem uses it.
     t_shared: Option<&'a [f64]>,
-    v: &'a [f64],
     u: &'a [f64],
 }
 
-/// `x̂⁺ = A x̂(t|t) + B v̂ + C u`, `T⁺ = A P Aᵀ + Q` and the moments, for subsystems from
-/// `first` on (0-based). `moment_cov` is empty when that covariance is shared. Returns the
-/// first subsystem whose prediction is not finite.
+/// `x̂⁺ = A x̂(t|t) + B v̂ + C u`, `T⁺ = A P Aᵀ + Q` and the moments, of the subsystems in
+/// `out` (from `first`, 0-based; `v̂` of the same subsystems in `v`). Returns the first
+/// subsystem whose prediction is not finite.
 fn predict_range<K: LocalKernel>(
     inp: &PredictInputs,
     wk: &mut Worker<K>,
     first: usize,
-    x_pred: &mut [f64],
-    t_pred: &mut [f64],
-    moment_mean: &mut [f64],
-    moment_cov: &mut [f64],
+    v: &[f64],
+    out: Predicted<'_>,
 ) -> FirstFailure {
+    let Predicted {
+        x_pred,
+        t_pred,
+        moment_mean,
+        moment_cov,
+    } = out;
     let model = inp.model;
     let d = model.dims;
     let (n, m, s) = (d.n, d.m, d.s());
@@ -432,7 +622,7 @@ fn predict_range<K: LocalKernel>(
             );
         }
         let (v, u) = (
-            &inp.v[start * s..(start + len) * s],
+            &v[k * s..(k + len) * s],
             &inp.u[start * m..(start + len) * m],
         );
         let xp = &mut x_pred[k * n..(k + len) * n];
@@ -479,6 +669,17 @@ fn propagate_run<K: LocalKernel>(
     for (x, out) in rest.zip(outs.into_remainder().chunks_exact_mut(nn)) {
         kernel.propagate(set, with_q, x, out);
     }
+}
+
+/// The workers of a step in halves split at subsystem `b`: the one for `b`, those of the
+/// first half's chunks and those of the second's.
+fn split_workers<K>(
+    workers: &mut [Worker<K>],
+    b: usize,
+) -> (&mut Worker<K>, &mut [Worker<K>], &mut [Worker<K>]) {
+    let (shared, rest) = workers.split_first_mut().expect("workers");
+    let (first, second) = rest.split_at_mut(b.div_ceil(CHUNK));
+    (shared, first, second)
 }
 
 /// `v.par_chunks_mut(size)`, or `count` empty slices when `v` is empty.
@@ -595,7 +796,8 @@ impl<K: LocalKernel> TwoStepFilter<K> {
             z: vec![0.0; big_n * d.s()],
             v: vec![0.0; big_n * d.s()],
             solve_scratch: Vec::with_capacity(big_n * d.s()),
-            workers: vec![worker; big_n.div_ceil(CHUNK).max(1)],
+            // A chunk's each, and one more for each half's last chunk and for their boundary.
+            workers: vec![worker; big_n.div_ceil(CHUNK) + 2],
             solver_error,
             arrival: match opts.update {
                 Update::Mixture => vec![0.0; big_n],
@@ -697,39 +899,46 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
             y,
             u,
         };
-        let failed = if parallel {
-            let chunks = self.workers.len();
-            self.workers
-                .par_iter_mut()
-                .zip(self.x_filt.par_chunks_mut(CHUNK * n))
-                .zip(self.p_filt.par_chunks_mut(CHUNK * n * n))
-                .zip(par_chunks_or_empty(&mut self.z, CHUNK * s, chunks))
-                .zip(par_chunks_or_empty(&mut self.arrival, CHUNK, chunks))
-                .zip(self.log_densities.par_chunks_mut(CHUNK))
-                .enumerate()
-                .filter_map(|(c, (((((wk, xf), pf), z), a), l))| {
-                    update_range(&inp, wk, c * CHUNK, xf, pf, z, a, l)
-                })
-                .min()
-        } else {
-            update_range(
-                &inp,
-                &mut self.workers[0],
-                0,
-                &mut self.x_filt,
-                &mut self.p_filt,
-                &mut self.z,
-                &mut self.arrival,
-                &mut self.log_densities,
-            )
+        // On long chains each half of the split step-1 solve runs on the thread that
+        // updates and predicts its subsystems (docs/theory.md §2): two joins a step, and
+        // each half's data stays with one core. Subsystem `b`, whose `z` and `v` both halves
+        // read, is updated before them and predicted after them.
+        let halves = if parallel { self.solver.halves() } else { None };
+        let updated = Updated {
+            x_filt: &mut self.x_filt,
+            p_filt: &mut self.p_filt,
+            z: &mut self.z,
+            arrival: &mut self.arrival,
+            log_densities: &mut self.log_densities,
+        };
+        let failed = match &halves {
+            None => update_chunks(&inp, &mut self.workers, 0, updated, parallel),
+            Some(h) => {
+                let b = h.boundary();
+                let [rhs1, rhs2, _] = h.scratch(&mut self.solve_scratch);
+                let (w_shared, w1, w2) = split_workers(&mut self.workers, b);
+                let (mut head, rest) = updated.split_at(b, d);
+                let (mut shared, mut tail) = rest.split_at(1, d);
+                let failed = update_range(&inp, w_shared, b, shared.reborrow());
+                let z_shared = &*shared.z;
+                let (f1, f2) = rayon::join(
+                    || {
+                        let failed = update_chunks(&inp, w1, 0, head.reborrow(), true);
+                        h.forward_first(head.z, z_shared, rhs1);
+                        failed
+                    },
+                    || {
+                        let failed = update_chunks(&inp, w2, b + 1, tail.reborrow(), true);
+                        h.forward_second(z_shared, tail.z, rhs2);
+                        failed
+                    },
+                );
+                [failed, f1, f2].into_iter().flatten().min()
+            }
         };
         if let Some(i) = failed {
             return Err(self.numerical(t, i, NOT_PD));
         }
-
-        // Step 1: v̂ from z = D x̂ + H u.
-        self.solver
-            .solve(&self.z, &mut self.v, &mut self.solve_scratch);
 
         if self.sharing.gain {
             let set = window.ids[0];
@@ -745,36 +954,45 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
             x_filt: &self.x_filt,
             p_filt: &self.p_filt,
             t_shared: self.sharing.gain.then_some(self.t_shared.as_slice()),
-            v: &self.v,
             u,
         };
-        let failed = if parallel {
-            let chunks = self.workers.len();
-            self.workers
-                .par_iter_mut()
-                .zip(self.x_pred.par_chunks_mut(CHUNK * n))
-                .zip(self.t_pred.par_chunks_mut(CHUNK * n * n))
-                .zip(self.moment_mean.par_chunks_mut(CHUNK * n))
-                .zip(par_chunks_or_empty(
-                    &mut self.moment_cov,
-                    CHUNK * n * n,
-                    chunks,
-                ))
-                .enumerate()
-                .filter_map(|(c, ((((wk, xp), tp), mm), mc))| {
-                    predict_range(&inp, wk, c * CHUNK, xp, tp, mm, mc)
-                })
-                .min()
-        } else {
-            predict_range(
-                &inp,
-                &mut self.workers[0],
-                0,
-                &mut self.x_pred,
-                &mut self.t_pred,
-                &mut self.moment_mean,
-                &mut self.moment_cov,
-            )
+        let predicted = Predicted {
+            x_pred: &mut self.x_pred,
+            t_pred: &mut self.t_pred,
+            moment_mean: &mut self.moment_mean,
+            moment_cov: &mut self.moment_cov,
+        };
+        let failed = match &halves {
+            None => {
+                // Step 1: v̂ from z = D x̂ + H u.
+                self.solver
+                    .solve(&self.z, &mut self.v, &mut self.solve_scratch);
+                predict_chunks(&inp, &mut self.workers, 0, &self.v, predicted, parallel)
+            }
+            Some(h) => {
+                let b = h.boundary();
+                let [rhs1, rhs2, seam] = h.scratch(&mut self.solve_scratch);
+                h.seam(rhs1, rhs2, seam);
+                let (w_shared, w1, w2) = split_workers(&mut self.workers, b);
+                let (head, rest) = predicted.split_at(b, d);
+                let (shared, tail) = rest.split_at(1, d);
+                // The first half's `v` ends with v⁺(b), the second's starts with v⁻(b).
+                let (v1, v2) = self.v.split_at_mut(b * s + d.plus);
+                let (f1, f2) = rayon::join(
+                    || {
+                        h.finish_first(rhs1, seam, v1);
+                        predict_chunks(&inp, w1, 0, v1, head, true)
+                    },
+                    || {
+                        h.finish_second(rhs2, seam, v2);
+                        let v = &v2[s - d.plus..];
+                        predict_chunks(&inp, w2, b + 1, v, tail, true)
+                    },
+                );
+                let v = &self.v[b * s..(b + 1) * s];
+                let failed = predict_range(&inp, w_shared, b, v, shared);
+                [failed, f1, f2].into_iter().flatten().min()
+            }
         };
         if self.sharing.moment {
             let set = window.ids[0];

@@ -171,34 +171,119 @@ impl ChainSolver {
             v.fill(0.0);
             return;
         }
-        let order = links * s;
-        rhs.resize(order + 3 * s, 0.0); // and the split solve's seam, kl + ku = 3s − 2
-        // Link j (0-based) holds [a(j); b(j)] = [z⁺(j); z⁻(j+1)] on the right and
-        // [v⁺(j+1); v⁻(j)] in the solution, so links first..last read z and write v over
-        // contiguous ranges, and the two halves of a split solve move their data in parallel.
-        let fill = |first_row: usize, part: &mut [f64]| {
-            with_link_sizes(p, m, |p, s| fill_links(p, s, z, first_row / s, part));
-        };
-        // `out` starts at v[first·s + p].
-        let take = |part: &[f64], out: &mut [f64]| {
-            with_link_sizes(p, m, |p, s| take_links(p, s, part, out));
-        };
-        // v⁺(1) = 0 and v⁻(N) = 0 (P4).
-        v[..p].fill(0.0);
-        v[order + p..].fill(0.0);
-        let (rhs, seam) = rhs.split_at_mut(order);
-        let out = &mut v[p..order + p];
-        match &self.split {
-            Some(split) => {
-                let (out1, out2) = out.split_at_mut(split.first_rows());
-                split.solve_with(rhs, seam, fill, |x| take(x, out1), |x| take(x, out2));
-            }
-            None => {
-                fill(0, rhs);
-                self.lu.solve(rhs);
-                take(rhs, out);
-            }
+        if let Some(halves) = self.halves() {
+            let b = halves.boundary();
+            let (head, rest) = z.split_at(b * s);
+            let (shared, tail) = rest.split_at(s);
+            let [rhs1, rhs2, seam] = halves.scratch(rhs);
+            rayon::join(
+                || halves.forward_first(head, shared, rhs1),
+                || halves.forward_second(shared, tail, rhs2),
+            );
+            halves.seam(rhs1, rhs2, seam);
+            let (v1, v2) = v.split_at_mut(b * s + p);
+            rayon::join(
+                || halves.finish_first(rhs1, seam, v1),
+                || halves.finish_second(rhs2, seam, v2),
+            );
+            return;
         }
+        let order = links * s;
+        rhs.resize(order, 0.0);
+        with_link_sizes(p, m, |p, s| {
+            fill_links(p, s, z, rhs);
+            self.lu.solve(rhs);
+            // v⁺(1) = 0 and v⁻(N) = 0 (P4).
+            v[..p].fill(0.0);
+            v[order + p..].fill(0.0);
+            take_links(p, s, rhs, &mut v[p..order + p]);
+        });
+    }
+
+    /// The split solve in its parts, on chains long enough to have one (docs/theory.md §2):
+    /// for a caller that runs each half's own work on the thread that solves it.
+    pub fn halves(&self) -> Option<ChainHalves<'_>> {
+        self.split.as_deref().map(|split| ChainHalves {
+            plus: self.plus,
+            minus: self.minus,
+            subsystems: self.subsystems,
+            split,
+        })
+    }
+}
+
+/// [`ChainSolver::solve`] split at a link: the first half's links read `z` of subsystems
+/// `0..=b` and write `v` up to `v⁺(b)`, the second's read `z` from subsystem `b` on and write
+/// `v` from `v⁻(b)` on (`b` = [`ChainHalves::boundary`], 0-based). Subsystem `b` is the only
+/// one both halves touch: its `z` must be known before either half starts, and its `v` is
+/// whole only when both have finished. The result is [`ChainSolver::solve`]'s, bit for bit.
+pub struct ChainHalves<'a> {
+    plus: usize,
+    minus: usize,
+    subsystems: usize,
+    split: &'a SplitBandLu,
+}
+
+impl ChainHalves<'_> {
+    /// The subsystem both halves touch (0-based): the first half holds links `0..b`.
+    pub fn boundary(&self) -> usize {
+        self.split.first_rows() / (self.plus + self.minus)
+    }
+
+    /// `scratch` (resized once) as the halves' right-hand sides and the seam's.
+    pub fn scratch<'s>(&self, scratch: &'s mut Vec<f64>) -> [&'s mut [f64]; 3] {
+        let s = self.plus + self.minus;
+        let order = (self.subsystems - 1) * s;
+        let seam_len = 3 * s; // kl + ku = 3s − 2
+        scratch.resize(order + seam_len, 0.0);
+        let (rhs, seam) = scratch.split_at_mut(order);
+        let (rhs1, rhs2) = rhs.split_at_mut(self.split.first_rows());
+        [rhs1, rhs2, seam]
+    }
+
+    /// The first half's right-hand side from `z` of subsystems `0..b` (`head`) and of `b`
+    /// (`shared`), and its block solved.
+    pub fn forward_first(&self, head: &[f64], shared: &[f64], rhs: &mut [f64]) {
+        with_link_sizes(self.plus, self.minus, |p, s| {
+            let (before, last) = rhs.split_at_mut(rhs.len() - s);
+            fill_links(p, s, head, before);
+            fill_link(p, s, &head[head.len() - s..], shared, last);
+        });
+        self.split.solve_block(false, rhs);
+    }
+
+    /// The second half's right-hand side from `z` of subsystem `b` (`shared`) and of those
+    /// after it (`tail`), and its block solved.
+    pub fn forward_second(&self, shared: &[f64], tail: &[f64], rhs: &mut [f64]) {
+        with_link_sizes(self.plus, self.minus, |p, s| {
+            let (first, after) = rhs.split_at_mut(s);
+            fill_link(p, s, shared, &tail[..s], first);
+            fill_links(p, s, tail, after);
+        });
+        self.split.solve_block(true, rhs);
+    }
+
+    /// The reduced system at the seam, once both halves are forward-solved.
+    pub fn seam(&self, rhs1: &[f64], rhs2: &[f64], seam: &mut [f64]) {
+        self.split.solve_seam(rhs1, rhs2, seam);
+    }
+
+    /// The first half's `v`: `out` is `v` of subsystems `0..b` and `v⁺(b)`.
+    pub fn finish_first(&self, rhs: &mut [f64], seam: &[f64], out: &mut [f64]) {
+        self.split.finish_block(false, rhs, seam);
+        let p = self.plus;
+        out[..p].fill(0.0); // v⁺(1) = 0 (P4)
+        with_link_sizes(p, self.minus, |p, s| take_links(p, s, rhs, &mut out[p..]));
+    }
+
+    /// The second half's `v`: `out` is `v⁻(b)` and `v` of the subsystems after `b`.
+    pub fn finish_second(&self, rhs: &mut [f64], seam: &[f64], out: &mut [f64]) {
+        self.split.finish_block(true, rhs, seam);
+        let len = rhs.len();
+        out[len..].fill(0.0); // v⁻(N) = 0 (P4)
+        with_link_sizes(self.plus, self.minus, |p, s| {
+            take_links(p, s, rhs, &mut out[..len])
+        });
     }
 }
 
@@ -219,20 +304,27 @@ fn with_link_sizes<R>(p: usize, m: usize, f: impl FnOnce(usize, usize) -> R) -> 
     }
 }
 
-/// The right-hand side of the links from link `first` on, one row of `rhs` per link `j`:
-/// `[a(j); b(j)] = [z⁺(j); z⁻(j+1)]` (`p` and `s − p` values).
+/// The right-hand side of the links between consecutive subsystems of `z` (one row of `rhs`
+/// per link `j`): `[a(j); b(j)] = [z⁺(j); z⁻(j+1)]` (`p` and `s − p` values).
+#[inline(always)]
+fn fill_links(p: usize, s: usize, z: &[f64], rhs: &mut [f64]) {
+    let pairs = z.windows(2 * s).step_by(s);
+    for (row, zz) in rhs.chunks_exact_mut(s).zip(pairs) {
+        fill_link(p, s, &zz[..s], &zz[s..], row);
+    }
+}
+
+/// One link's right-hand side, `[z⁺(j); z⁻(j+1)]`, from `z(j)` (`left`) and `z(j+1)`
+/// (`right`).
 // Blocks of one or two numbers: loops beat memcpy calls.
 #[allow(clippy::manual_memcpy)]
 #[inline(always)]
-fn fill_links(p: usize, s: usize, z: &[f64], first: usize, rhs: &mut [f64]) {
-    let neighbours = z[first * s..].windows(2 * s).step_by(s);
-    for (row, zz) in rhs.chunks_exact_mut(s).zip(neighbours) {
-        for k in 0..p {
-            row[k] = zz[k];
-        }
-        for k in p..s {
-            row[k] = zz[s + k];
-        }
+fn fill_link(p: usize, s: usize, left: &[f64], right: &[f64], row: &mut [f64]) {
+    for k in 0..p {
+        row[k] = left[k];
+    }
+    for k in p..s {
+        row[k] = right[k];
     }
 }
 

@@ -16,7 +16,7 @@
 mod banded;
 mod transfer;
 
-pub use banded::{ChainSolver, MAX_CONDITION};
+pub use banded::{ChainHalves, ChainSolver, MAX_CONDITION};
 pub use transfer::{TRANSFER_ERROR_WARNING, TransferSolver};
 
 use crate::choice::{Choice, Variant};
@@ -77,6 +77,14 @@ impl Interconnect {
         match self {
             Interconnect::Banded(s) => s.solve(z, v, scratch),
             Interconnect::Transfer(s) => s.solve(z, v),
+        }
+    }
+
+    /// The banded solver's split solve in its parts, on chains long enough to have one.
+    pub fn halves(&self) -> Option<ChainHalves<'_>> {
+        match self {
+            Interconnect::Banded(s) => s.halves(),
+            Interconnect::Transfer(_) => None,
         }
     }
 

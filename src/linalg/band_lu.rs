@@ -446,48 +446,45 @@ impl SplitBandLu {
     /// Solves `A x = b` in place, the two blocks in parallel (rayon); `seam` is scratch of
     /// `kl + ku` values. The result does not depend on the thread count.
     pub fn solve(&self, b: &mut [f64], seam: &mut [f64]) {
-        self.solve_with(b, seam, |_, _| {}, |_| {}, |_| {});
+        let (b1, b2) = b.split_at_mut(self.m1);
+        rayon::join(
+            || self.solve_block(false, b1),
+            || self.solve_block(true, b2),
+        );
+        self.solve_seam(b1, b2, seam);
+        rayon::join(
+            || self.finish_block(false, b1, seam),
+            || self.finish_block(true, b2, seam),
+        );
     }
 
-    /// [`SplitBandLu::solve`], with the right-hand side filled in place by
-    /// `fill(first_row, rows)` and the solution read by `take_first` and `take_second`, each
-    /// on the thread that solves its block (so that moving data in and out runs in parallel
-    /// too).
-    pub fn solve_with(
-        &self,
-        b: &mut [f64],
-        seam: &mut [f64],
-        fill: impl Fn(usize, &mut [f64]) + Sync,
-        take_first: impl FnOnce(&[f64]) + Send,
-        take_second: impl FnOnce(&[f64]) + Send,
-    ) {
-        let (m1, kl, ku) = (self.m1, self.kl, self.ku);
-        let (b1, b2) = b.split_at_mut(m1);
-        rayon::join(
-            || {
-                fill(0, b1);
-                self.first.solve(b1)
-            },
-            || {
-                fill(m1, b2);
-                self.second.solve(b2)
-            },
-        );
-        let seam = &mut seam[..kl + ku];
-        seam[..kl].copy_from_slice(&b1[m1 - kl..]);
-        seam[kl..].copy_from_slice(&b2[..ku]);
-        self.reduced.solve(seam);
-        let (x1_end, x2_start) = seam.split_at(kl);
-        rayon::join(
-            || {
-                subtract_spikes(b1, &self.v, x2_start);
-                take_first(b1)
-            },
-            || {
-                subtract_spikes(b2, &self.w, x1_end);
-                take_second(b2)
-            },
-        );
+    /// The solve in its three parts, for callers that fill and read each block on the
+    /// thread that solves it: `g_k = A_k⁻¹ b_k` in place, of the first block (`second` false,
+    /// `b` its `m₁` rows) or of the second.
+    pub fn solve_block(&self, second: bool, b: &mut [f64]) {
+        match second {
+            false => self.first.solve(b),
+            true => self.second.solve(b),
+        }
+    }
+
+    /// The reduced system at the seam from both blocks' `g_k`: `seam` (at least `kl + ku`
+    /// values) receives `[x₁[m₁−kl..]; x₂[..ku]]`.
+    pub fn solve_seam(&self, g1: &[f64], g2: &[f64], seam: &mut [f64]) {
+        let (kl, ku) = (self.kl, self.ku);
+        seam[..kl].copy_from_slice(&g1[self.m1 - kl..]);
+        seam[kl..kl + ku].copy_from_slice(&g2[..ku]);
+        self.reduced.solve(&mut seam[..kl + ku]);
+    }
+
+    /// A block's solution from its `g_k` and the seam's: `x₁ = g₁ − V x₂[..ku]`, `x₂ = g₂ − W
+    /// x₁[m₁−kl..]`.
+    pub fn finish_block(&self, second: bool, g: &mut [f64], seam: &[f64]) {
+        let (x1_end, x2_start) = seam[..self.kl + self.ku].split_at(self.kl);
+        match second {
+            false => subtract_spikes(g, &self.v, x2_start),
+            true => subtract_spikes(g, &self.w, x1_end),
+        }
     }
 }
 

@@ -4,7 +4,9 @@
 
 use crate::common::{model_from, shipped_model, simulate_run};
 use nalgebra::{DMatrix, DVector};
-use sisfilt::filter::{ChainFilter, Dropouts, SecondMoment, TwoStepFilter, TwoStepOptions};
+use sisfilt::filter::{
+    ChainFilter, Dropouts, InterconnectFrom, SecondMoment, TwoStepFilter, TwoStepOptions, Update,
+};
 use sisfilt::model::Model;
 
 /// Filtered estimates and covariances of every step.
@@ -489,40 +491,91 @@ fn kernel_lanes_equal_one_subsystem_at_a_time() {
     }
 }
 
-/// Long chains run step 2 in parallel over chunks of subsystems: the output must be the same
-/// bits with one thread and with two (6000 subsystems, above the parallel threshold).
+/// Long chains run the local phases in parallel and solve step 1 in two halves, each half's
+/// updates, solve and predictions on one thread: every output must have the same bits with
+/// one thread and with two (6000 subsystems, above both thresholds), for both moments, both
+/// dropout modes, both updates and `z` from either estimate. On a chain whose parameters change
+/// across the subsystem the halves share (the 3000th: the first half holds 2999 of the 5999
+/// links), with rows missing from the data, that subsystem's among them; and on the same chain
+/// without either, where the covariance recursions are shared.
 #[test]
-fn parallel_step_two_is_bitwise_identical() {
-    let text = UNCOUPLED
+fn parallel_steps_are_bitwise_identical() {
+    let uniform = UNCOUPLED
         .replace("subsystems = 4", "subsystems = 6000")
         .replace("steps = 60", "steps = 4")
         .replace("p = [0.9, 0.5, 0.7, 1.0]", "p = 0.8")
         .replace("BMAT", "[[0.3, 0.1], [0.0, 0.2]]")
         .replace("DMAT", "[[1.0, 0.0], [0.0, 1.0]]");
-    let model = model_from(&text);
-    let run = simulate_run(&model, 2);
-    let estimate = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
-            let mut f = sisfilt::filter::two_step(&model, TwoStepOptions::default()).unwrap();
-            let mut out = Vec::new();
-            for (y, u) in run.y.iter().zip(&run.u) {
-                f.step(y, u).unwrap();
-                out.extend_from_slice(f.filtered().0);
-                out.extend_from_slice(f.predicted().1);
+    let varying = uniform.clone()
+        + "[[override]]\nsubsystems = [2990, 3000]\nA = [[0.8, 0.1], [-0.2, 0.85]]\n\
+           [[override]]\nsubsystems = [3001, 3200]\nJ = [[0.9, 0.2]]\n";
+    let mut cases = Vec::new();
+    for second_moment in [SecondMoment::Local, SecondMoment::Paper] {
+        for dropouts in [Dropouts::Unknown, Dropouts::Known] {
+            cases.push(TwoStepOptions {
+                second_moment,
+                dropouts,
+                ..TwoStepOptions::default()
+            });
+        }
+    }
+    cases.push(TwoStepOptions {
+        update: Update::Mixture,
+        ..TwoStepOptions::default()
+    });
+    cases.push(TwoStepOptions {
+        interconnect_from: InterconnectFrom::Predicted,
+        ..TwoStepOptions::default()
+    });
+    for (text, gaps) in [(varying, true), (uniform, false)] {
+        let model = model_from(&text);
+        assert!(
+            sisfilt::interconnect::ChainSolver::new(&model, 1)
+                .unwrap()
+                .halves()
+                .is_some_and(|h| h.boundary() == 2999),
+            "the test chain must be solved in two halves"
+        );
+        let mut run = simulate_run(&model, 2);
+        if gaps {
+            for (t, y) in run.y.iter_mut().enumerate() {
+                for i in [2999, 17 + 1000 * t, 5999 - t] {
+                    y[i] = f64::NAN;
+                }
             }
-            out
-        })
-    };
-    let (one, two) = (estimate(1), estimate(2));
-    assert!(
-        one.iter()
-            .zip(&two)
-            .all(|(a, b)| a.to_bits() == b.to_bits())
-    );
+        }
+        let estimate = |threads: usize, opts: TwoStepOptions| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut f = sisfilt::filter::two_step(&model, opts).unwrap();
+                let mut out = Vec::new();
+                for (y, u) in run.y.iter().zip(&run.u) {
+                    f.step(y, u).unwrap();
+                    let ((x, p), (xp, tp)) = (f.filtered(), f.predicted());
+                    // (π is NaN for a subsystem whose whole row is missing.)
+                    assert!(x.iter().chain(p).all(|v| v.is_finite()));
+                    for part in [x, p, xp, tp, f.arrival().unwrap_or(&[])] {
+                        out.extend_from_slice(part);
+                    }
+                    out.extend(f.log_likelihood());
+                }
+                out
+            })
+        };
+        for &opts in &cases {
+            let (one, two) = (estimate(1, opts), estimate(2, opts));
+            assert_eq!(one.len(), two.len());
+            assert!(
+                one.iter()
+                    .zip(&two)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{opts:?}, gaps {gaps}"
+            );
+        }
+    }
 }
 
 const SHARED: &str = "
