@@ -796,7 +796,8 @@ impl<K: LocalKernel> TwoStepFilter<K> {
             z: vec![0.0; big_n * d.s()],
             v: vec![0.0; big_n * d.s()],
             solve_scratch: Vec::with_capacity(big_n * d.s()),
-            // A chunk's each, and one more for each half's last chunk and for their boundary.
+            // One per chunk, one for the subsystem two halves share (split_workers), and one
+            // for the shorter last chunk a half may add.
             workers: vec![worker; big_n.div_ceil(CHUNK) + 2],
             solver_error,
             arrival: match opts.update {
