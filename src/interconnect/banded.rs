@@ -204,9 +204,7 @@ impl ChainSolver {
     /// for a caller that runs each half's own work on the thread that solves it.
     pub fn halves(&self) -> Option<ChainHalves<'_>> {
         self.split.as_deref().map(|split| ChainHalves {
-            plus: self.plus,
-            minus: self.minus,
-            subsystems: self.subsystems,
+            solver: self,
             split,
         })
     }
@@ -218,22 +216,20 @@ impl ChainSolver {
 /// one both halves touch: its `z` must be known before either half starts, and its `v` is
 /// whole only when both have finished. The result is [`ChainSolver::solve`]'s, bit for bit.
 pub struct ChainHalves<'a> {
-    plus: usize,
-    minus: usize,
-    subsystems: usize,
+    solver: &'a ChainSolver,
     split: &'a SplitBandLu,
 }
 
 impl ChainHalves<'_> {
     /// The subsystem both halves touch (0-based): the first half holds links `0..b`.
     pub fn boundary(&self) -> usize {
-        self.split.first_rows() / (self.plus + self.minus)
+        self.split.first_rows() / (self.solver.plus + self.solver.minus)
     }
 
     /// `scratch` (resized once) as the halves' right-hand sides and the seam's.
     pub fn scratch<'s>(&self, scratch: &'s mut Vec<f64>) -> [&'s mut [f64]; 3] {
-        let s = self.plus + self.minus;
-        let order = (self.subsystems - 1) * s;
+        let s = self.solver.plus + self.solver.minus;
+        let order = (self.solver.subsystems - 1) * s;
         let seam_len = 3 * s; // kl + ku = 3s − 2
         scratch.resize(order + seam_len, 0.0);
         let (rhs, seam) = scratch.split_at_mut(order);
@@ -244,7 +240,7 @@ impl ChainHalves<'_> {
     /// The first half's right-hand side from `z` of subsystems `0..b` (`head`) and of `b`
     /// (`shared`), and its block solved.
     pub fn forward_first(&self, head: &[f64], shared: &[f64], rhs: &mut [f64]) {
-        with_link_sizes(self.plus, self.minus, |p, s| {
+        with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
             let (before, last) = rhs.split_at_mut(rhs.len() - s);
             fill_links(p, s, head, before);
             fill_link(p, s, &head[head.len() - s..], shared, last);
@@ -255,7 +251,7 @@ impl ChainHalves<'_> {
     /// The second half's right-hand side from `z` of subsystem `b` (`shared`) and of those
     /// after it (`tail`), and its block solved.
     pub fn forward_second(&self, shared: &[f64], tail: &[f64], rhs: &mut [f64]) {
-        with_link_sizes(self.plus, self.minus, |p, s| {
+        with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
             let (first, after) = rhs.split_at_mut(s);
             fill_link(p, s, shared, &tail[..s], first);
             fill_links(p, s, tail, after);
@@ -271,9 +267,11 @@ impl ChainHalves<'_> {
     /// The first half's `v`: `out` is `v` of subsystems `0..b` and `v⁺(b)`.
     pub fn finish_first(&self, rhs: &mut [f64], seam: &[f64], out: &mut [f64]) {
         self.split.finish_block(false, rhs, seam);
-        let p = self.plus;
+        let p = self.solver.plus;
         out[..p].fill(0.0); // v⁺(1) = 0 (P4)
-        with_link_sizes(p, self.minus, |p, s| take_links(p, s, rhs, &mut out[p..]));
+        with_link_sizes(p, self.solver.minus, |p, s| {
+            take_links(p, s, rhs, &mut out[p..])
+        });
     }
 
     /// The second half's `v`: `out` is `v⁻(b)` and `v` of the subsystems after `b`.
@@ -281,7 +279,7 @@ impl ChainHalves<'_> {
         self.split.finish_block(true, rhs, seam);
         let len = rhs.len();
         out[len..].fill(0.0); // v⁻(N) = 0 (P4)
-        with_link_sizes(self.plus, self.minus, |p, s| {
+        with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
             take_links(p, s, rhs, &mut out[..len])
         });
     }
