@@ -410,11 +410,7 @@ impl<W: Write> EstimatesWriter<W> {
             let format_chunk = |(c, buf): (usize, &mut Vec<u8>)| {
                 buf.clear();
                 buf.reserve(per_chunk * max_row);
-                let (mut ryu, mut itoa) = (ryu::Buffer::new(), itoa::Buffer::new());
-                let mut fmt = NumberFormat {
-                    ryu: &mut ryu,
-                    itoa: &mut itoa,
-                };
+                let mut fmt = NumberFormat::new();
                 let from = start + c * per_chunk;
                 for i in from..(from + per_chunk).min(start + batch) {
                     let block = &p[i * n * n..(i + 1) * n * n];
@@ -814,11 +810,7 @@ mod tests {
         let p: Vec<f64> = (0..rows * n * n).map(|k| (k as f64).cos() / 7.0).collect();
         for format in [Format::Csv, Format::Json] {
             let mut expected = Vec::new();
-            let (mut ryu, mut itoa) = (ryu::Buffer::new(), itoa::Buffer::new());
-            let mut fmt = NumberFormat {
-                ryu: &mut ryu,
-                itoa: &mut itoa,
-            };
+            let mut fmt = NumberFormat::new();
             for t in 1..=2 {
                 for i in 0..rows {
                     let b = &p[i * 4..i * 4 + 4];
