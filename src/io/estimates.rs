@@ -313,8 +313,9 @@ pub struct EstimatesWriter<W: Write = Output> {
     format: Format,
     /// No row written yet (the first JSON row has no leading comma).
     first: bool,
-    /// One buffer per chunk, sized once for the longest possible rows.
-    buffers: Vec<Vec<u8>>,
+    /// One buffer per chunk, sized once for the longest possible rows, and the values of
+    /// its row being written.
+    buffers: Vec<(Vec<u8>, Vec<f64>)>,
     /// A reader may be waiting: pass each step on as soon as it is written.
     live: bool,
 }
@@ -405,30 +406,35 @@ impl<W: Write> EstimatesWriter<W> {
             };
             let per_chunk = batch.div_ceil(chunks);
             if self.buffers.len() < chunks {
-                self.buffers.resize_with(chunks, Vec::new);
+                self.buffers.resize_with(chunks, Default::default);
             }
-            let format_chunk = |(c, buf): (usize, &mut Vec<u8>)| {
+            let format_chunk = |(c, (buf, row)): (usize, &mut (Vec<u8>, Vec<f64>))| {
                 buf.clear();
                 buf.reserve(per_chunk * max_row);
+                row.reserve(values);
                 let mut fmt = NumberFormat::new();
                 let from = start + c * per_chunk;
                 for i in from..(from + per_chunk).min(start + batch) {
+                    row.clear();
+                    row.extend_from_slice(&x[i * n..(i + 1) * n]);
                     let block = &p[i * n * n..(i + 1) * n * n];
-                    let upper = (0..n).flat_map(move |r| (r..n).map(move |c| block[c * n + r]));
-                    let blocks = (1..=cross).flat_map(move |d| {
-                        let b = band.filter(|_| i + d < rows).map(|b| b.block(i, d));
-                        (0..n * n).map(move |e| b.map_or(f64::NAN, |b| b[(e % n) * n + e / n]))
-                    });
+                    for r in 0..n {
+                        row.extend((r..n).map(|c| block[c * n + r]));
+                    }
                     // A missing value is written as an empty cell (CSV) or `null` (JSON).
-                    let pi = arrival.map(|a| a.map_or(f64::NAN, |a| a[i]));
-                    let nis = nis.map(|a| a.map_or(f64::NAN, |a| a[i]));
-                    let row = x[i * n..(i + 1) * n]
-                        .iter()
-                        .copied()
-                        .chain(upper)
-                        .chain(blocks)
-                        .chain(pi)
-                        .chain(nis);
+                    for d in 1..=cross {
+                        match band.filter(|_| i + d < rows) {
+                            Some(b) => {
+                                let b = b.block(i, d);
+                                row.extend((0..n * n).map(|e| b[(e % n) * n + e / n]));
+                            }
+                            None => row.resize(row.len() + n * n, f64::NAN),
+                        }
+                    }
+                    for column in [arrival, nis].into_iter().flatten() {
+                        row.push(column.map_or(f64::NAN, |a| a[i]));
+                    }
+                    let row = row.iter().copied();
                     match format {
                         Format::Csv => fmt.csv_row(buf, t, i + 1, row),
                         Format::Json => fmt.json_row(buf, first && i == 0, t, i + 1, row),
@@ -446,7 +452,7 @@ impl<W: Write> EstimatesWriter<W> {
                     .enumerate()
                     .for_each(format_chunk);
             }
-            for buf in &self.buffers[..chunks] {
+            for (buf, _) in &self.buffers[..chunks] {
                 self.out.write_all(buf)?;
             }
             start += batch;
