@@ -107,7 +107,7 @@ impl Tally {
 /// enough to demean it and compute its autocorrelations at lags `1..=MAX_LAG` at the end.
 #[derive(Debug, Clone)]
 struct Series {
-    /// The last `MAX_LAG` values (NaN where a term was not in the data).
+    /// The last `MAX_LAG` values, the latest first (NaN where a term was not in the data).
     recent: [f64; MAX_LAG],
     sum: f64,
     squares: f64,
@@ -135,22 +135,25 @@ impl Default for Series {
 }
 
 impl Series {
-    fn add(&mut self, t: usize, value: f64) {
+    /// Adds the next value of the series (NaN: not in the data).
+    fn add(&mut self, value: f64) {
         if !value.is_nan() {
-            for k in 1..=MAX_LAG.min(t - 1) {
-                let before = self.recent[(t - k) % MAX_LAG];
-                if !before.is_nan() {
-                    self.products[k - 1] += before * value;
-                    self.pairs[k - 1] += 1;
-                    self.firsts[k - 1] += before;
-                    self.seconds[k - 1] += value;
-                }
+            // Every lag at once, without a branch per lag: a pair that is not there adds
+            // -0.0, which leaves every sum as it was (x + -0.0 = x, for x = ±0 too).
+            for k in 0..MAX_LAG {
+                let before = self.recent[k];
+                let present = !before.is_nan();
+                self.products[k] += if present { before * value } else { -0.0 };
+                self.pairs[k] += u64::from(present);
+                self.firsts[k] += if present { before } else { -0.0 };
+                self.seconds[k] += if present { value } else { -0.0 };
             }
             self.sum += value;
             self.squares += value * value;
             self.count += 1;
         }
-        self.recent[t % MAX_LAG] = value;
+        self.recent.copy_within(..MAX_LAG - 1, 1);
+        self.recent[0] = value;
     }
 
     /// The autocorrelation at lag `k` of the demeaned series over the pairs present:
@@ -252,15 +255,7 @@ impl Worker {
                     let k = k + l;
                     let series = &mut series[k * q..(k + 1) * q];
                     let tally = &mut tallies[k];
-                    nis[k] = record(
-                        step.t,
-                        window.p[i + l],
-                        &term,
-                        eps,
-                        tally,
-                        series,
-                        &mut self.block,
-                    );
+                    nis[k] = record(window.p[i + l], &term, eps, tally, series, &mut self.block);
                 }
                 k += LANES;
                 continue;
@@ -283,7 +278,6 @@ impl Worker {
             };
             let series = &mut series[k * q..(k + 1) * q];
             nis[k] = record(
-                step.t,
                 p,
                 &term,
                 self.scorer.eps(),
@@ -297,10 +291,10 @@ impl Worker {
     }
 }
 
-/// Adds a term with arrival probability `p` and standardised innovations `eps` at step `t` to
-/// its subsystem's tally and series and to the chunk's block sum; returns its NIS.
+/// Adds a term with arrival probability `p` and standardised innovations `eps` (of the step
+/// after the last one recorded) to its subsystem's tally and series and to the chunk's block
+/// sum; returns its NIS.
 fn record(
-    t: usize,
     p: f64,
     term: &Term,
     eps: &[f64],
@@ -309,7 +303,7 @@ fn record(
     block: &mut f64,
 ) -> f64 {
     for (e, s) in eps.iter().zip(series) {
-        s.add(t, *e);
+        s.add(*e);
     }
     if term.received == 0 {
         return term.nis;
