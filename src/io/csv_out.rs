@@ -45,9 +45,9 @@ impl NumberFormat {
         i: usize,
         values: impl Iterator<Item = f64>,
     ) {
-        line.extend_from_slice(self.int.format(t).as_bytes());
+        self.push_int(line, t);
         line.push(b',');
-        line.extend_from_slice(self.int.format(i).as_bytes());
+        self.push_int(line, i);
         for v in values {
             line.push(b',');
             if !v.is_nan() {
@@ -78,9 +78,9 @@ impl NumberFormat {
             line.push(b',');
         }
         line.push(b'[');
-        line.extend_from_slice(self.int.format(t).as_bytes());
+        self.push_int(line, t);
         line.push(b',');
-        line.extend_from_slice(self.int.format(i).as_bytes());
+        self.push_int(line, i);
         for v in values {
             line.push(b',');
             if v.is_finite() {
