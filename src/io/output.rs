@@ -1,6 +1,8 @@
 //! Output destinations: standard output, or a file written atomically (a temporary file in the
 //! target folder, renamed over the target only when everything was written), so that an error
 //! or an interrupted run never leaves a half-written file and keeps the previous one intact.
+//! The new file is on the disk before it replaces the old one (synced before the rename; a
+//! large file is synced as it grows, so that little is left to wait for at the end).
 //! A destination that exists and is not a regular file (`/dev/null`, a named pipe, a terminal)
 //! is written in place: renaming over it would replace the device or pipe with a file. A
 //! symbolic link is written through: the file it points to is replaced, the link stays.
@@ -14,7 +16,9 @@
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::{SyncSender, TrySendError, sync_channel};
 use std::sync::{Mutex, MutexGuard};
+use std::thread::JoinHandle;
 
 use crate::error::{Error, Result};
 use crate::io::folder_of;
@@ -60,7 +64,7 @@ impl Drop for Registration {
 pub enum Output {
     Stdout(HeldStdout),
     File {
-        file: BufWriter<tempfile::NamedTempFile>,
+        file: BufWriter<TempOutput>,
         /// The path as given, for messages.
         dest: PathBuf,
         /// The file replaced: `dest`, or where the symbolic link `dest` points.
@@ -147,7 +151,7 @@ impl Output {
         }
         Ok(Output::File {
             registration,
-            file: BufWriter::with_capacity(BUFFER, tmp),
+            file: BufWriter::with_capacity(BUFFER, TempOutput::new(tmp)),
             dest: dest.to_path_buf(),
             target,
         })
@@ -184,7 +188,8 @@ impl Output {
             } => {
                 let tmp = file
                     .into_inner()
-                    .map_err(|e| Error::io(&dest, e.into_error()))?;
+                    .map_err(|e| Error::io(&dest, e.into_error()))?
+                    .finish();
                 tmp.as_file().sync_all().ok();
                 // Under the registry's lock: a signal handler either removed the file before
                 // (and the rename fails) or sees it already gone from the list.
@@ -229,6 +234,93 @@ impl Write for Output {
             Output::File { file, .. } => file.flush(),
             Output::Special { file, .. } => file.flush(),
         }
+    }
+}
+
+/// How many bytes a temporary output file takes before its pages are sent to the disk.
+const WRITEBACK: u64 = 16 << 20;
+
+/// A temporary output file whose pages go to the disk while it is written: every
+/// `WRITEBACK` bytes, a thread of its own syncs what is there so far, so that the sync
+/// before the rename (which makes the new file durable before it replaces the old one) waits
+/// only for the last few megabytes instead of the whole file. The thread waits on the disk,
+/// not on a core, and is started only once a file is that large.
+pub struct TempOutput {
+    tmp: tempfile::NamedTempFile,
+    unsynced: u64,
+    /// Wakes the writeback thread; `None` until the first [`WRITEBACK`] bytes, and for good if
+    /// the thread could not be started (the final sync then does all the work, as it would).
+    writeback: Option<(SyncSender<()>, JoinHandle<()>)>,
+    unavailable: bool,
+}
+
+impl TempOutput {
+    fn new(tmp: tempfile::NamedTempFile) -> Self {
+        Self {
+            tmp,
+            unsynced: 0,
+            writeback: None,
+            unavailable: false,
+        }
+    }
+
+    /// Asks the writeback thread for a sync, starting it the first time; a request while one
+    /// is pending is dropped, since that sync will cover these pages too.
+    fn request_writeback(&mut self) {
+        if self.unavailable {
+            return;
+        }
+        if self.writeback.is_none() {
+            let started = self.tmp.as_file().try_clone().and_then(|file| {
+                let (request, requests) = sync_channel::<()>(1);
+                let thread = std::thread::Builder::new()
+                    .name("sisfilt-writeback".into())
+                    .spawn(move || {
+                        while requests.recv().is_ok() {
+                            let _ = file.sync_data();
+                        }
+                    })?;
+                Ok((request, thread))
+            });
+            match started {
+                Ok(writeback) => self.writeback = Some(writeback),
+                Err(_) => {
+                    self.unavailable = true;
+                    return;
+                }
+            }
+        }
+        if let Some((request, _)) = &self.writeback {
+            match request.try_send(()) {
+                Ok(()) | Err(TrySendError::Full(())) => {}
+                Err(TrySendError::Disconnected(())) => self.unavailable = true,
+            }
+        }
+    }
+
+    /// Stops the writeback thread (after the sync it may be doing) and returns the file.
+    fn finish(mut self) -> tempfile::NamedTempFile {
+        if let Some((request, thread)) = self.writeback.take() {
+            drop(request);
+            let _ = thread.join();
+        }
+        self.tmp
+    }
+}
+
+impl Write for TempOutput {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let written = self.tmp.write(buf)?;
+        self.unsynced += written as u64;
+        if self.unsynced >= WRITEBACK {
+            self.unsynced = 0;
+            self.request_writeback();
+        }
+        Ok(written)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.tmp.flush()
     }
 }
 
@@ -377,6 +469,38 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "old");
         out.commit().unwrap();
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "new");
+    }
+
+    /// A file larger than [`WRITEBACK`] is synced by the writeback thread as it grows, and
+    /// comes out whole; given up half way, it leaves the previous file and nothing else.
+    #[test]
+    fn large_files_are_written_back_as_they_grow() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.csv");
+        std::fs::write(&path, "old").unwrap();
+        let bytes: Vec<u8> = (0..3 * WRITEBACK + 12_345)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+            .collect();
+        let started = |out: &Output| match out {
+            Output::File { file, .. } => file.get_ref().writeback.is_some(),
+            _ => panic!("a regular file"),
+        };
+        let mut out = Output::create(&path).unwrap();
+        for chunk in bytes.chunks(999_983) {
+            out.write_all(chunk).unwrap();
+        }
+        assert!(started(&out));
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "old");
+        out.commit().unwrap();
+        assert!(std::fs::read(&path).unwrap() == bytes);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+
+        let mut out = Output::create(&path).unwrap();
+        out.write_all(&bytes[..2 * WRITEBACK as usize]).unwrap();
+        assert!(started(&out));
+        drop(out);
+        assert!(std::fs::read(&path).unwrap() == bytes);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 
     /// A symbolic link is written through: its target gets the new bytes and keeps its mode,
