@@ -185,16 +185,17 @@ pub fn stream(
     truth: Option<&mut dyn TruthSource>,
     sink: &mut dyn EstimateSink,
 ) -> Result<RunReport> {
-    for note in advice(spec, model)? {
-        sink.note(note);
-    }
+    // The stability estimate and the filter's setup are independent: side by side they
+    // take the longer of the two instead of their sum.
     if spec.output() == EstimateKind::Smoothed {
-        let smoother = spec.build_smoother(model)?;
-        return run_smoother(model, spec, smoother, source, truth, sink);
+        let (notes, smoother) = rayon::join(|| advice(spec, model), || spec.build_smoother(model));
+        notes?.into_iter().for_each(|note| sink.note(note));
+        return run_smoother(model, spec, smoother?, source, truth, sink);
     }
-    let filter = spec.build_filter(model)?;
+    let (notes, filter) = rayon::join(|| advice(spec, model), || spec.build_filter(model));
+    notes?.into_iter().for_each(|note| sink.note(note));
     let predicted = spec.output() == EstimateKind::Predicted;
-    run_filter(model, spec, filter, predicted, source, truth, sink)
+    run_filter(model, spec, filter?, predicted, source, truth, sink)
 }
 
 /// The innovation check of a run of `spec` (docs/theory.md §14).
