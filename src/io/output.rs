@@ -243,15 +243,23 @@ const WRITEBACK: u64 = 16 << 20;
 /// A temporary output file whose pages go to the disk while it is written: every
 /// `WRITEBACK` bytes, a thread of its own syncs what is there so far, so that the sync
 /// before the rename (which makes the new file durable before it replaces the old one) waits
-/// only for the last few megabytes instead of the whole file. The thread waits on the disk,
-/// not on a core, and is started only once a file is that large.
+/// only for the last few megabytes instead of the whole file. The thread mostly waits on the
+/// disk, and is started only once a file is that large.
 pub struct TempOutput {
     tmp: tempfile::NamedTempFile,
     unsynced: u64,
-    /// Wakes the writeback thread; `None` until the first [`WRITEBACK`] bytes, and for good if
-    /// the thread could not be started (the final sync then does all the work, as it would).
-    writeback: Option<(SyncSender<()>, JoinHandle<()>)>,
-    unavailable: bool,
+    writeback: Writeback,
+}
+
+/// The writeback thread of a [`TempOutput`].
+enum Writeback {
+    /// Not needed yet: the file is still under `WRITEBACK` bytes.
+    NotStarted,
+    /// Woken by a message to sync; it ends when the sender is dropped.
+    Running(SyncSender<()>, JoinHandle<()>),
+    /// It could not be started or has stopped: the final sync does all the work, as it would
+    /// without it.
+    Unavailable,
 }
 
 impl TempOutput {
@@ -259,18 +267,14 @@ impl TempOutput {
         Self {
             tmp,
             unsynced: 0,
-            writeback: None,
-            unavailable: false,
+            writeback: Writeback::NotStarted,
         }
     }
 
     /// Asks the writeback thread for a sync, starting it the first time; a request while one
     /// is pending is dropped, since that sync will cover these pages too.
     fn request_writeback(&mut self) {
-        if self.unavailable {
-            return;
-        }
-        if self.writeback.is_none() {
+        if let Writeback::NotStarted = self.writeback {
             let started = self.tmp.as_file().try_clone().and_then(|file| {
                 let (request, requests) = sync_channel::<()>(1);
                 let thread = std::thread::Builder::new()
@@ -280,27 +284,22 @@ impl TempOutput {
                             let _ = file.sync_data();
                         }
                     })?;
-                Ok((request, thread))
+                Ok(Writeback::Running(request, thread))
             });
-            match started {
-                Ok(writeback) => self.writeback = Some(writeback),
-                Err(_) => {
-                    self.unavailable = true;
-                    return;
-                }
-            }
+            self.writeback = started.unwrap_or(Writeback::Unavailable);
         }
-        if let Some((request, _)) = &self.writeback {
-            match request.try_send(()) {
-                Ok(()) | Err(TrySendError::Full(())) => {}
-                Err(TrySendError::Disconnected(())) => self.unavailable = true,
-            }
+        if let Writeback::Running(request, _) = &self.writeback
+            && let Err(TrySendError::Disconnected(())) = request.try_send(())
+        {
+            self.writeback = Writeback::Unavailable;
         }
     }
 
     /// Stops the writeback thread (after the sync it may be doing) and returns the file.
     fn finish(mut self) -> tempfile::NamedTempFile {
-        if let Some((request, thread)) = self.writeback.take() {
+        if let Writeback::Running(request, thread) =
+            std::mem::replace(&mut self.writeback, Writeback::Unavailable)
+        {
             drop(request);
             let _ = thread.join();
         }
@@ -482,7 +481,9 @@ mod tests {
             .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
             .collect();
         let started = |out: &Output| match out {
-            Output::File { file, .. } => file.get_ref().writeback.is_some(),
+            Output::File { file, .. } => {
+                matches!(file.get_ref().writeback, Writeback::Running(..))
+            }
             _ => panic!("a regular file"),
         };
         let mut out = Output::create(&path).unwrap();
