@@ -16,7 +16,7 @@
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{SyncSender, TrySendError, sync_channel};
+use std::sync::mpsc::{SyncSender, sync_channel};
 use std::sync::{Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
@@ -257,8 +257,7 @@ enum Writeback {
     NotStarted,
     /// Woken by a message to sync; it ends when the sender is dropped.
     Running(SyncSender<()>, JoinHandle<()>),
-    /// It could not be started or has stopped: the final sync does all the work, as it would
-    /// without it.
+    /// It could not be started: the final sync does all the work, as it would without it.
     Unavailable,
 }
 
@@ -288,10 +287,10 @@ impl TempOutput {
             });
             self.writeback = started.unwrap_or(Writeback::Unavailable);
         }
-        if let Writeback::Running(request, _) = &self.writeback
-            && let Err(TrySendError::Disconnected(())) = request.try_send(())
-        {
-            self.writeback = Writeback::Unavailable;
+        if let Writeback::Running(request, _) = &self.writeback {
+            // Full: a sync is pending and will cover these pages; disconnected: the thread
+            // is gone and the final sync does its work.
+            let _ = request.try_send(());
         }
     }
 

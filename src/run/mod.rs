@@ -185,17 +185,27 @@ pub fn stream(
     truth: Option<&mut dyn TruthSource>,
     sink: &mut dyn EstimateSink,
 ) -> Result<RunReport> {
-    // The stability estimate and the filter's setup are independent: side by side they
-    // take the longer of the two instead of their sum.
     if spec.output() == EstimateKind::Smoothed {
-        let (notes, smoother) = rayon::join(|| advice(spec, model), || spec.build_smoother(model));
-        notes?.into_iter().for_each(|note| sink.note(note));
-        return run_smoother(model, spec, smoother?, source, truth, sink);
+        let smoother = advised(spec, model, sink, || spec.build_smoother(model))?;
+        return run_smoother(model, spec, smoother, source, truth, sink);
     }
-    let (notes, filter) = rayon::join(|| advice(spec, model), || spec.build_filter(model));
-    notes?.into_iter().for_each(|note| sink.note(note));
+    let filter = advised(spec, model, sink, || spec.build_filter(model))?;
     let predicted = spec.output() == EstimateKind::Predicted;
-    run_filter(model, spec, filter?, predicted, source, truth, sink)
+    run_filter(model, spec, filter, predicted, source, truth, sink)
+}
+
+/// Builds a run's filter or smoother with `build` while its [`advice`] is worked out beside
+/// it (the stability estimate and the setup are independent: side by side they take the
+/// longer of the two instead of their sum), then hands the advice to `sink`.
+fn advised<T: Send>(
+    spec: &CheckedSpec,
+    model: &Model,
+    sink: &mut dyn EstimateSink,
+    build: impl FnOnce() -> Result<T> + Send,
+) -> Result<T> {
+    let (notes, built) = rayon::join(|| advice(spec, model), build);
+    notes?.into_iter().for_each(|note| sink.note(note));
+    built
 }
 
 /// The innovation check of a run of `spec` (docs/theory.md §14).
