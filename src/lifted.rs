@@ -298,8 +298,6 @@ fn ritz_radius(model: &Model, t: usize, solver: &ChainSolver, k: usize) -> Spect
 pub struct LiftedSystem {
     /// `A_eff = blkdiag(A) + blkdiag(B) L_x`.
     pub a_eff: DMatrix<f64>,
-    /// `A_effᵀ`, kept for `X A_effᵀ` products (nalgebra's `gemm` has no `A Bᵀ` form).
-    pub a_eff_tr: DMatrix<f64>,
     /// `U_eff = blkdiag(C) + blkdiag(B) L_u`.
     pub u_eff: DMatrix<f64>,
     /// `blkdiag(Q)`.
@@ -346,7 +344,6 @@ impl LiftedSystem {
                 .copy_from(&model.param_set(window.ids[i]).Q);
         }
         Ok(Self {
-            a_eff_tr: a_eff.transpose(),
             a_eff,
             u_eff,
             q_big,
@@ -369,7 +366,9 @@ impl LiftedSystem {
 pub struct LiftedMoments {
     pub mean: DVector<f64>,
     pub cov: DMatrix<f64>,
+    /// Two `Nn × Nn` scratch matrices of the covariance step.
     scratch: DMatrix<f64>,
+    next: DMatrix<f64>,
     mean_scratch: DVector<f64>,
 }
 
@@ -385,6 +384,7 @@ impl LiftedMoments {
         }
         Self {
             scratch: DMatrix::zeros(big_n * n, big_n * n),
+            next: DMatrix::zeros(big_n * n, big_n * n),
             mean_scratch: DVector::zeros(big_n * n),
             mean,
             cov,
@@ -404,8 +404,14 @@ impl LiftedMoments {
         let u = nalgebra::DVectorView::from_slice(u, u.len());
         self.mean_scratch.gemv(1.0, &sys.u_eff, &u, 1.0);
         std::mem::swap(&mut self.mean, &mut self.mean_scratch);
-        self.scratch.gemm(1.0, &sys.a_eff, &self.cov, 0.0);
-        self.cov.copy_from(&sys.q_big);
-        self.cov.gemm(1.0, &self.scratch, &sys.a_eff_tr, 1.0);
+        crate::linalg::dense::congruence(
+            self.cov.nrows(),
+            sys.a_eff.as_slice(),
+            self.cov.as_slice(),
+            sys.q_big.as_slice(),
+            self.scratch.as_mut_slice(),
+            self.next.as_mut_slice(),
+        );
+        std::mem::swap(&mut self.cov, &mut self.next);
     }
 }

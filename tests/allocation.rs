@@ -127,23 +127,6 @@ fn steps_allocate(filter: &mut dyn ChainFilter, model: &Model, known: bool) -> u
     })
 }
 
-/// The allocations of three steps with the `lifted` second moment: its two dense products
-/// `A_eff P` and `(A_eff P) A_effᵀ` per step (docs/theory.md §4) go through matrixmultiply,
-/// which allocates its packing buffer on every call. That is two allocations per
-/// `O((N n)³)` step of the exact reference moment, and nothing else; every other option
-/// allocates nothing. The moment is kept only where the update reads it: Nahi's update with
-/// unknown dropouts.
-fn lifted_allocations(second_moment: SecondMoment, dropouts: Dropouts, update: Update) -> usize {
-    if second_moment == SecondMoment::Lifted
-        && dropouts == Dropouts::Unknown
-        && update == Update::Linear
-    {
-        2 * 3
-    } else {
-        0
-    }
-}
-
 #[test]
 fn steps_after_the_first_allocate_nothing() {
     let pool = started_pool(2);
@@ -206,28 +189,18 @@ fn steps_after_the_first_allocate_nothing() {
     }
     for (name, model, opts) in &cases {
         let known = opts.dropouts == Dropouts::Known;
-        let expected = lifted_allocations(opts.second_moment, opts.dropouts, opts.update);
         pool.install(|| {
             let mut fixed = sisfilt::filter::two_step(model, *opts).unwrap();
             let count = steps_allocate(fixed.as_mut(), model, known);
-            assert_eq!(
-                count, expected,
-                "{name}, compile-time sizes: {count} allocations"
-            );
+            assert_eq!(count, 0, "{name}, compile-time sizes: {count} allocations");
             let mut dynamic = TwoStepFilter::<DynamicKernel>::new(model, *opts).unwrap();
             let count = steps_allocate(&mut dynamic, model, known);
-            assert_eq!(
-                count, expected,
-                "{name}, dynamic sizes: {count} allocations"
-            );
+            assert_eq!(count, 0, "{name}, dynamic sizes: {count} allocations");
             let mut unshared = TwoStepFilter::<DynamicKernel>::new(model, *opts)
                 .unwrap()
                 .without_sharing();
             let count = steps_allocate(&mut unshared, model, known);
-            assert_eq!(
-                count, expected,
-                "{name}, without sharing: {count} allocations"
-            );
+            assert_eq!(count, 0, "{name}, without sharing: {count} allocations");
         });
     }
 
@@ -261,11 +234,7 @@ fn steps_after_the_first_allocate_nothing() {
                 pool.install(|| {
                     let mut joint = JointFilter::new(model, opts).unwrap();
                     let count = steps_allocate(&mut joint, model, known);
-                    assert_eq!(
-                        count,
-                        lifted_allocations(opts.second_moment, opts.dropouts, opts.update),
-                        "{name}, joint {opts:?}: {count} allocations"
-                    );
+                    assert_eq!(count, 0, "{name}, joint {opts:?}: {count} allocations");
                 });
             }
         }
@@ -443,7 +412,28 @@ fn steps_after_the_first_allocate_nothing() {
 /// is built and runs three steps, measured, for every band, moment and update, and are not
 /// loose beyond 4×: a bound that is too small lets a size through to the allocator, one that is
 /// too large refuses what fits.
+///
+/// The dense kernels of the lifted filters (faer) keep a packing scratch per thread, sized by the
+/// processor's caches, allocated at the thread's first large product and kept: a few megabytes a
+/// thread that do not grow with the chain, and not part of a filter's bound. The bounds are
+/// measured on one thread that has done such a product.
 fn memory_bounds_hold() {
+    let pool = started_pool(1);
+    pool.install(|| {
+        let m = faer::Mat::<f64>::identity(256, 256);
+        let mut out = faer::Mat::<f64>::zeros(256, 256);
+        sisfilt::linalg::dense::product(
+            out.as_mut(),
+            faer::Accum::Replace,
+            m.as_ref(),
+            m.as_ref(),
+            1.0,
+        );
+        memory_bounds_hold_on_this_thread();
+    });
+}
+
+fn memory_bounds_hold_on_this_thread() {
     use sisfilt::filter::CentralizedFilter;
     let ratio = |peak: usize, bound: f64, what: &str| {
         assert!(

@@ -10,10 +10,11 @@ use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorViewMut};
 
 use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
-use crate::filter::nahi::{self, CovarianceForm, Workspace};
+use crate::filter::lifted_update::LiftedUpdate;
+use crate::filter::nahi::{self, Workspace};
 use crate::filter::{Dropouts, Update};
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::symmetrize;
+use crate::linalg::{dense, symmetrize};
 use crate::model::Model;
 use crate::run::check_update;
 
@@ -48,7 +49,9 @@ pub struct CentralizedFilter {
     t_pred: Vec<f64>,
     x_filt: Vec<f64>,
     p_filt: Vec<f64>,
-    ws: Workspace,
+    update: LiftedUpdate,
+    /// `Nn × Nn` scratch of the prediction.
+    scratch: Vec<f64>,
     s_ii: DMatrix<f64>,
     js: DMatrix<f64>,
     /// Per-subsystem diagonal blocks of the last output, `N·n²` values.
@@ -97,7 +100,8 @@ impl CentralizedFilter {
             p_filt: t_pred.clone(),
             x_pred,
             t_pred,
-            ws: Workspace::new(size, big_n * d.q),
+            update: LiftedUpdate::new(big_n, n, d.q),
+            scratch: vec![0.0; size * size],
             s_ii: DMatrix::zeros(n, n),
             js: DMatrix::zeros(d.q, n),
             block_filt: block_pred.clone(),
@@ -110,6 +114,8 @@ impl CentralizedFilter {
     /// A bound on the bytes the filter holds (docs/theory.md §12 "Memory"): twenty lifted
     /// `(N n)²` matrices (the lifted system, moments, covariances and their workspace) and the
     /// mixture update's `𝒲` and `𝒥`; tests/allocation.rs holds it against the bytes measured.
+    /// Not counted: the packing scratch the dense kernels keep per thread (a few megabytes,
+    /// sized by the processor's caches, whatever the chain).
     pub fn bytes(model: &Model) -> f64 {
         let size = (model.subsystems * model.dims.n) as f64;
         let measured = (model.subsystems * model.dims.q) as f64;
@@ -219,55 +225,52 @@ impl CentralizedFilter {
         &self.sys
     }
 
-    /// Nahi's update of step `t` on the lifted system (docs/theory.md §7).
+    /// Nahi's update of step `t` on the lifted system (docs/theory.md §7), with the block
+    /// structure of its measurement ([`LiftedUpdate`]).
     fn linear_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
         let model = &self.model.clone();
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
         let window = model.window(t);
-        {
-            let (h, reff, innov) = self.ws.measurement_mut();
-            h.fill(0.0);
-            reff.fill(0.0);
-            for i in 0..big_n {
-                let prm = model.param_set(window.ids[i]);
-                let p = if self.known { 1.0 } else { window.p[i] };
-                let mut hb = h.view_mut((i * q, i * n), (q, n));
-                hb.copy_from(&prm.J);
-                hb.scale_mut(p);
-                let mut rb = reff.view_mut((i * q, i * q), (q, q));
-                rb.copy_from(&prm.M);
-                if let Some(mom) = &self.moments
-                    && p * (1.0 - p) != 0.0
-                {
-                    mom.second_moment(i, n, &mut self.s_ii);
-                    self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
-                    rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
-                }
-                nahi::innovation(
-                    prm,
-                    p,
-                    &y[i * q..(i + 1) * q],
-                    &u[i * m..(i + 1) * m],
-                    &self.x_pred[i * n..(i + 1) * n],
-                    &mut innov.as_mut_slice()[i * q..(i + 1) * q],
-                );
+        for i in 0..big_n {
+            let prm = model.param_set(window.ids[i]);
+            let p = if self.known { 1.0 } else { window.p[i] };
+            let (h, r, innov) = self.update.block_mut(i);
+            h.iter_mut()
+                .zip(prm.J.as_slice())
+                .for_each(|(h, j)| *h = p * j);
+            let mut rb = DMatrixViewMut::from_slice(r, q, q);
+            rb.copy_from(&prm.M);
+            if let Some(mom) = &self.moments
+                && p * (1.0 - p) != 0.0
+            {
+                mom.second_moment(i, n, &mut self.s_ii);
+                self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
+                rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
             }
+            nahi::innovation(
+                prm,
+                p,
+                &y[i * q..(i + 1) * q],
+                &u[i * m..(i + 1) * m],
+                &self.x_pred[i * n..(i + 1) * n],
+                innov,
+            );
         }
-        self.ws.drop_missing_rows(y);
-        let log_density = nahi::kalman_update(
-            &self.x_pred,
-            &self.t_pred,
-            &mut self.x_filt,
-            &mut self.p_filt,
-            CovarianceForm::Standard,
-            &mut self.ws,
-        )
-        .ok_or_else(|| Error::Numerical {
-            t,
-            i: 0,
-            msg: "the centralized filter's innovation covariance is not positive definite".into(),
-        })?;
+        let log_density = self
+            .update
+            .update(
+                &self.x_pred,
+                &self.t_pred,
+                &mut self.x_filt,
+                &mut self.p_filt,
+            )
+            .ok_or_else(|| Error::Numerical {
+                t,
+                i: 0,
+                msg: "the centralized filter's innovation covariance is not positive definite"
+                    .into(),
+            })?;
         // The lifted innovations are Gaussian only when the filter knows the dropouts.
         self.log_likelihood = self.known.then_some(log_density);
         Ok(())
@@ -305,12 +308,13 @@ impl ChainFilter for CentralizedFilter {
             let uu = nalgebra::DVectorView::from_slice(u, u.len());
             xp.gemv(1.0, &self.sys.u_eff, &uu, 1.0);
         }
-        nahi::propagate_cov(
-            &self.sys.a_eff,
+        dense::congruence(
+            size,
+            self.sys.a_eff.as_slice(),
             &self.p_filt,
-            Some(&self.sys.q_big),
+            self.sys.q_big.as_slice(),
+            &mut self.scratch,
             &mut self.t_pred,
-            &mut self.ws,
         );
         if let Some(mom) = &mut self.moments {
             mom.propagate(&self.sys, u);
@@ -398,7 +402,7 @@ impl CentralizedSchedule {
                 sched.systems.push(filter.sys.clone());
             }
             sched.system_of_step.push(sched.systems.len() - 1);
-            sched.gains.push(filter.ws.gain_transposed().clone());
+            sched.gains.push(filter.update.gain_transposed());
             sched.p_blocks.push(filter.block_filt.clone());
             sched.t_blocks.push(filter.block_pred.clone());
         }

@@ -5,6 +5,7 @@
 pub mod centralized;
 pub mod joint;
 pub mod kernel;
+pub mod lifted_update;
 pub mod nahi;
 pub mod two_step;
 

@@ -208,21 +208,13 @@ pub fn update(
     }
     ws.dropped = 0;
     ws.drop_missing_rows(meas.y);
-    kalman_update(x_pred, t_pred, x_filt, p_filt, CovarianceForm::Joseph, ws)
+    kalman_update(x_pred, t_pred, x_filt, p_filt, ws)
 }
 
-/// How the filtered covariance is formed; equal in exact arithmetic.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CovarianceForm {
-    /// `(I − L H) T (I − L H)ᵀ + L R_eff Lᵀ`: positive semidefinite whatever the rounding.
-    Joseph,
-    /// `T − L H T`: a third of the cost, for the optimal gain of the large lifted filter.
-    Standard,
-}
-
-/// The linear update shared by every filter of the crate, on the measurement model already in
+/// The linear update of one subsystem, shared by the distributed filters, on the model already in
 /// `ws` (`H`, `R_eff`, `ỹ`): `Σ = H T Hᵀ + R_eff`, `L = T Hᵀ Σ⁻¹` (Cholesky solve),
-/// `x̂(t|t) = x̂ + L ỹ`, and `P(t|t)` in the given form (symmetrised). Returns
+/// `x̂(t|t) = x̂ + L ỹ`, and `P(t|t)` in the Joseph form (symmetrised; positive semidefinite
+/// whatever the rounding). Returns
 /// `log N(ỹ; 0, Σ)` over the rows not dropped ([`Workspace::drop_row`]), the log density of
 /// the measurement given the past when it is Gaussian (known dropouts, docs/theory.md §5), or
 /// `None` when `Σ` is not positive definite.
@@ -231,7 +223,6 @@ pub fn kalman_update(
     t_pred: &[f64],
     x_filt: &mut [f64],
     p_filt: &mut [f64],
-    form: CovarianceForm,
     ws: &mut Workspace,
 ) -> Option<f64> {
     let (q, n) = ws.h.shape();
@@ -259,12 +250,6 @@ pub fn kalman_update(
     }
     let log_density = received_log_density(&ws.sigma, &mut ws.innov, ws.dropped);
     let mut p_mat = DMatrixViewMut::from_slice(p_filt, n, n);
-    if form == CovarianceForm::Standard {
-        p_mat.copy_from(&t_mat);
-        p_mat.gemm_tr(-1.0, &ws.w, &ws.ht, 1.0);
-        symmetrize(&mut p_mat);
-        return Some(log_density);
-    }
     // Joseph form: F = I − L H, P = F T Fᵀ + L R_eff Lᵀ.
     ws.f.fill_with_identity();
     ws.f.gemm_tr(-1.0, &ws.w, &ws.h, 1.0);

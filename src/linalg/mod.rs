@@ -5,6 +5,8 @@
 
 pub mod band;
 pub mod band_lu;
+pub mod dense;
+pub mod subnormal;
 
 use nalgebra::{DMatrix, Dim, Matrix, SimdRealField, StorageMut, SymmetricEigen};
 

@@ -749,8 +749,10 @@ fn centralized_smoother_takes_the_pseudo_inverse_of_a_singular_prediction() {
         &run.u,
     );
     assert!(smoothed.notes.is_empty(), "{:?}", smoothed.notes);
+    // A step whose condition is just below MAX_CONDITION takes the Cholesky solve, wrong by up
+    // to about 10¹⁰ · 2⁻⁵² ≈ 2·10⁻⁶ of the largest entry (docs/theory.md §9).
     let (gx, gp) = gap(&smoothed, &batch);
-    assert!(gx < 1e-6 && gp < 1e-6, "x {gx:e}, P {gp:e}");
+    assert!(gx < 1e-5 && gp < 1e-5, "x {gx:e}, P {gp:e}");
 
     let paper = std::fs::read_to_string(shipped_config("paper.toml")).unwrap();
     let model = model_from(&paper.replace("steps = 150", "steps = 300"));

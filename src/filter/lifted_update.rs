@@ -1,0 +1,266 @@
+//! The linear update of the centralized filter (docs/theory.md §7) with the structure the
+//! chain gives its lifted measurement: `H = blkdiag(H_i)` (`H_i = p_i J_i`, `q × n`) and
+//! `R_eff = blkdiag(R_i)`, so that `H T` is a gather of `T`'s block rows and `H T Hᵀ` one of
+//! its blocks, with no product by a mostly-zero `H`. On the `r` rows received (a row not in
+//! the data is left out, docs/theory.md §15):
+//!
+//! ```text
+//! Σ = H T Hᵀ + R_eff = L Lᵀ       one Cholesky factor
+//! V = L⁻¹ H T,  e = L⁻¹ ỹ          one triangular solve
+//! x̂(t|t) = x̂ + Vᵀ e
+//! P(t|t) = T − Vᵀ V                one product (the rank-r downdate)
+//! log N(ỹ; 0, Σ) = −½ (r log 2π + 2 Σ_k log L_kk + |e|²)
+//! ```
+//!
+//! This is `L = T Hᵀ Σ⁻¹`, `P = T − L H T` of docs/theory.md §4 (the gain `L = Vᵀ L⁻¹`,
+//! formed only when asked for: [`LiftedUpdate::gain_transposed`]).
+
+use faer::{Accum, ColMut, MatMut, MatRef};
+use nalgebra::{DMatrix, DMatrixViewMut};
+
+use crate::filter::nahi::LN_2PI;
+use crate::linalg::dense::{Cholesky, product, solve_lower};
+use crate::linalg::symmetrize;
+
+/// The measurement model of one step and the scratch of the update, sized once for a chain
+/// of `blocks` subsystems of state size `n` and measurement size `q`.
+#[derive(Debug, Clone)]
+pub struct LiftedUpdate {
+    n: usize,
+    q: usize,
+    blocks: usize,
+    /// `H_i`, `q × n` column-major, one after another.
+    h: Vec<f64>,
+    /// `R_i`, `q × q` column-major, one after another.
+    r: Vec<f64>,
+    /// `ỹ`, `N q` values; NaN where the row is not in the data.
+    innov: Vec<f64>,
+    /// The rows received, in order.
+    received: Vec<usize>,
+    /// `H T` on the received rows (`r × Nn`), then `V = L⁻¹ H T`.
+    v: Vec<f64>,
+    /// `Σ` on the received rows (`r × r`), then its factor `L` in its lower triangle.
+    sigma: Vec<f64>,
+    /// `ỹ` on the received rows, then `e = L⁻¹ ỹ`.
+    e: Vec<f64>,
+    chol: Cholesky,
+}
+
+impl LiftedUpdate {
+    pub fn new(blocks: usize, n: usize, q: usize) -> Self {
+        let rows = blocks * q;
+        Self {
+            n,
+            q,
+            blocks,
+            h: vec![0.0; blocks * q * n],
+            r: vec![0.0; blocks * q * q],
+            innov: vec![0.0; rows],
+            received: Vec::with_capacity(rows),
+            v: Vec::with_capacity(rows * blocks * n),
+            sigma: Vec::with_capacity(rows * rows),
+            e: Vec::with_capacity(rows),
+            chol: Cholesky::new(rows),
+        }
+    }
+
+    /// Subsystem `i`'s part of the measurement model to fill: `H_i` (`q × n`) and `R_i`
+    /// (`q × q`), column-major, and its innovation `ỹ_i` (`q`, NaN where not in the data).
+    pub fn block_mut(&mut self, i: usize) -> (&mut [f64], &mut [f64], &mut [f64]) {
+        let (n, q) = (self.n, self.q);
+        (
+            &mut self.h[i * q * n..(i + 1) * q * n],
+            &mut self.r[i * q * q..(i + 1) * q * q],
+            &mut self.innov[i * q..(i + 1) * q],
+        )
+    }
+
+    /// The update of the prediction `x̂ = x_pred`, `T = t_pred` (`Nn × Nn` column-major) on
+    /// the model filled by [`Self::block_mut`]: writes `x̂(t|t)` and `P(t|t)` (symmetrised)
+    /// and returns `log N(ỹ; 0, Σ)` over the received rows (0 with none), or `None` when `Σ`
+    /// is not positive definite.
+    pub fn update(
+        &mut self,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+    ) -> Option<f64> {
+        let (n, q) = (self.n, self.q);
+        let size = self.blocks * n;
+        self.received.clear();
+        self.received
+            .extend((0..self.innov.len()).filter(|&k| !self.innov[k].is_nan()));
+        let rows = self.received.len();
+        if rows == 0 {
+            x_filt.copy_from_slice(x_pred);
+            p_filt.copy_from_slice(t_pred);
+            return Some(0.0);
+        }
+        // H T: row (i, k) of H times T's block row i, column by column.
+        self.v.resize(rows * size, 0.0);
+        for (t_col, v_col) in t_pred.chunks_exact(size).zip(self.v.chunks_exact_mut(rows)) {
+            for (out, &row) in v_col.iter_mut().zip(&self.received) {
+                let (i, k) = (row / q, row % q);
+                let h_i = &self.h[i * q * n..(i + 1) * q * n];
+                let t_i = &t_col[i * n..(i + 1) * n];
+                *out = (0..n).map(|l| h_i[k + l * q] * t_i[l]).sum();
+            }
+        }
+        // Σ = (H T) Hᵀ + R_eff: column (j, k) takes H_j's row k against H T's block column j.
+        self.sigma.resize(rows * rows, 0.0);
+        for (b, &row) in self.received.iter().enumerate() {
+            let (j, kb) = (row / q, row % q);
+            let col = &mut self.sigma[b * rows..(b + 1) * rows];
+            col.fill(0.0);
+            for l in 0..n {
+                let h = self.h[j * q * n + kb + l * q];
+                if h != 0.0 {
+                    let ht = &self.v[(j * n + l) * rows..(j * n + l + 1) * rows];
+                    col.iter_mut().zip(ht).for_each(|(s, v)| *s += h * v);
+                }
+            }
+            // The rows of subsystem j lie within q of row b (the received rows are sorted).
+            for a in b.saturating_sub(q)..(b + q).min(rows) {
+                let (i, ka) = (self.received[a] / q, self.received[a] % q);
+                if i == j {
+                    col[a] += self.r[j * q * q + ka + kb * q];
+                }
+            }
+        }
+        if !self.chol.factor(MatMut::from_column_major_slice_mut(
+            &mut self.sigma,
+            rows,
+            rows,
+        )) {
+            return None;
+        }
+        let l = MatRef::from_column_major_slice(&self.sigma, rows, rows);
+        self.e.clear();
+        self.e.extend(self.received.iter().map(|&k| self.innov[k]));
+        solve_lower(l, ColMut::from_slice_mut(&mut self.e).as_mat_mut());
+        solve_lower(
+            l,
+            MatMut::from_column_major_slice_mut(&mut self.v, rows, size),
+        );
+        let v = MatRef::from_column_major_slice(&self.v, rows, size);
+        for (c, (xf, xp)) in x_filt.iter_mut().zip(x_pred).enumerate() {
+            *xf = xp
+                + self.v[c * rows..(c + 1) * rows]
+                    .iter()
+                    .zip(&self.e)
+                    .map(|(v, e)| v * e)
+                    .sum::<f64>();
+        }
+        p_filt.copy_from_slice(t_pred);
+        product(
+            MatMut::from_column_major_slice_mut(p_filt, size, size),
+            Accum::Add,
+            v.transpose(),
+            v,
+            -1.0,
+        );
+        symmetrize(&mut DMatrixViewMut::from_slice(p_filt, size, size));
+        let log_det: f64 = (0..rows).map(|k| 2.0 * l[(k, k)].ln()).sum();
+        let norm: f64 = self.e.iter().map(|e| e * e).sum();
+        Some(-0.5 * (rows as f64 * LN_2PI + log_det + norm))
+    }
+
+    /// The transposed gain of the last update, `W = Σ⁻¹ H T = L⁻ᵀ V` (`N q × N n`), with
+    /// zero rows for the rows not received.
+    pub fn gain_transposed(&self) -> DMatrix<f64> {
+        let (rows, size) = (self.received.len(), self.blocks * self.n);
+        let mut w = faer::Mat::from_fn(rows, size, |r, c| self.v[c * rows + r]);
+        let l = MatRef::from_column_major_slice(&self.sigma, rows, rows);
+        faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+            l.transpose(),
+            w.as_mut(),
+            faer::Par::Seq,
+        );
+        let mut out = DMatrix::zeros(self.innov.len(), size);
+        for (a, &row) in self.received.iter().enumerate() {
+            for c in 0..size {
+                out[(row, c)] = w[(a, c)];
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DVector;
+
+    /// Three subsystems, `n = 3`, `q = 2`, one row of the second lost: the update against the
+    /// dense formulas on the received rows (`Σ = H T Hᵀ + R`, `L = T Hᵀ Σ⁻¹`, `P = T − L H T`).
+    #[test]
+    fn block_update_matches_the_dense_kalman_update_on_the_received_rows() {
+        let (blocks, n, q) = (3, 3, 2);
+        let (size, rows) = (blocks * n, blocks * q);
+        let f = |k: usize, s: f64| ((k as f64 + 1.0) * s).sin();
+        let a = DMatrix::from_fn(size, size, |r, c| f(r * size + c, 0.7));
+        let t = &a * a.transpose() + DMatrix::identity(size, size);
+        let x = DVector::from_fn(size, |r, _| f(r, 1.3));
+        let mut upd = LiftedUpdate::new(blocks, n, q);
+        let (mut h_big, mut r_big) = (DMatrix::zeros(rows, size), DMatrix::zeros(rows, rows));
+        let y = DVector::from_fn(rows, |r, _| f(r, 2.1));
+        let lost = 3;
+        for i in 0..blocks {
+            let h = DMatrix::from_fn(q, n, |r, c| f(i * 11 + r * n + c, 0.9));
+            let m = DMatrix::from_fn(q, q, |r, c| if r == c { 0.5 + i as f64 } else { 0.1 });
+            h_big.view_mut((i * q, i * n), (q, n)).copy_from(&h);
+            r_big.view_mut((i * q, i * q), (q, q)).copy_from(&m);
+            let (hb, rb, innov) = upd.block_mut(i);
+            hb.copy_from_slice(h.as_slice());
+            rb.copy_from_slice(m.as_slice());
+            for k in 0..q {
+                let row = i * q + k;
+                innov[k] = if row == lost {
+                    f64::NAN
+                } else {
+                    y[row] - (h.row(k) * x.rows(i * n, n))[0]
+                };
+            }
+        }
+        let (mut xf, mut pf) = (vec![0.0; size], vec![0.0; size * size]);
+        let log_density = upd
+            .update(x.as_slice(), t.as_slice(), &mut xf, &mut pf)
+            .unwrap();
+
+        let kept: Vec<usize> = (0..rows).filter(|&r| r != lost).collect();
+        let h = h_big.select_rows(&kept);
+        let r = r_big.select_rows(&kept).select_columns(&kept);
+        let sigma = &h * &t * h.transpose() + r;
+        let sigma_inv = sigma.clone().try_inverse().unwrap();
+        let gain = &t * h.transpose() * &sigma_inv;
+        let innov = y.select_rows(&kept) - &h * &x;
+        let x_expected = &x + &gain * &innov;
+        let p_expected = &t - &gain * &h * &t;
+        let expected_density = -0.5
+            * (kept.len() as f64 * LN_2PI
+                + sigma.determinant().ln()
+                + (innov.transpose() * &sigma_inv * &innov)[0]);
+        assert!((DVector::from_column_slice(&xf) - x_expected).amax() < 1e-12);
+        assert!((DMatrix::from_column_slice(size, size, &pf) - p_expected).amax() < 1e-12);
+        assert!((log_density - expected_density).abs() < 1e-12);
+
+        let w = upd.gain_transposed();
+        assert_eq!(w.shape(), (rows, size));
+        assert!(w.row(lost).iter().all(|&v| v == 0.0));
+        assert!((w.select_rows(&kept) - gain.transpose()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn nothing_received_leaves_the_prediction() {
+        let mut upd = LiftedUpdate::new(2, 1, 1);
+        for i in 0..2 {
+            upd.block_mut(i).2[0] = f64::NAN;
+        }
+        let (x, t) = ([1.0, 2.0], [2.0, 0.5, 0.5, 3.0]);
+        let (mut xf, mut pf) = ([0.0; 2], [0.0; 4]);
+        assert_eq!(upd.update(&x, &t, &mut xf, &mut pf), Some(0.0));
+        assert_eq!((xf, pf), (x, t));
+        assert_eq!(upd.gain_transposed(), DMatrix::zeros(2, 2));
+    }
+}

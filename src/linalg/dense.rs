@@ -1,0 +1,192 @@
+//! Dense kernels of the lifted (centralized) filter and smoother (docs/theory.md §7) on
+//! column-major matrices: faer's blocked products, triangular solves and Cholesky factor,
+//! each product and solve split by columns over the rayon threads (faer's own parallelism
+//! would bring a scheduler and its dependency tree of its own). Each kernel runs with subnormal
+//! numbers flushed to zero ([`FlushSubnormals`], docs/theory.md §7).
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch};
+use faer::linalg::matmul::matmul;
+use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+use faer::{Accum, MatMut, MatRef, Par};
+
+use crate::linalg::subnormal::FlushSubnormals;
+
+/// Fewer columns than this are not split between threads: the product would be too short to
+/// pay for the hand-over.
+const MIN_SPLIT_COLUMNS: usize = 64;
+
+/// `dst ← α lhs rhs`, or `dst ← dst + α lhs rhs` with `Accum::Add`, on the rayon threads.
+pub fn product(
+    dst: MatMut<'_, f64>,
+    accum: Accum,
+    lhs: MatRef<'_, f64>,
+    rhs: MatRef<'_, f64>,
+    alpha: f64,
+) {
+    product_in(dst, accum, lhs, rhs, alpha, rayon::current_num_threads());
+}
+
+fn product_in(
+    dst: MatMut<'_, f64>,
+    accum: Accum,
+    lhs: MatRef<'_, f64>,
+    rhs: MatRef<'_, f64>,
+    alpha: f64,
+    pieces: usize,
+) {
+    let cols = dst.ncols();
+    if pieces < 2 || cols < 2 * MIN_SPLIT_COLUMNS {
+        let _flush = FlushSubnormals::new();
+        matmul(dst, accum, lhs, rhs, alpha, Par::Seq);
+        return;
+    }
+    let first = pieces / 2;
+    let split = cols * first / pieces;
+    let (d1, d2) = dst.split_at_col_mut(split);
+    let (r1, r2) = rhs.split_at_col(split);
+    rayon::join(
+        || product_in(d1, accum, lhs, r1, alpha, first),
+        || product_in(d2, accum, lhs, r2, alpha, pieces - first),
+    );
+}
+
+/// `rhs ← L⁻¹ rhs` for a lower triangular `L` (only its lower triangle is read), on the rayon
+/// threads.
+pub fn solve_lower(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>) {
+    solve_lower_in(l, rhs, rayon::current_num_threads());
+}
+
+fn solve_lower_in(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>, pieces: usize) {
+    let cols = rhs.ncols();
+    if pieces < 2 || cols < 2 * MIN_SPLIT_COLUMNS {
+        let _flush = FlushSubnormals::new();
+        solve_lower_triangular_in_place(l, rhs, Par::Seq);
+        return;
+    }
+    let first = pieces / 2;
+    let (r1, r2) = rhs.split_at_col_mut(cols * first / pieces);
+    rayon::join(
+        || solve_lower_in(l, r1, first),
+        || solve_lower_in(l, r2, pieces - first),
+    );
+}
+
+/// `out = A X Aᵀ + Q` (symmetrised) for `size × size` column-major matrices, with `scratch`
+/// of that size: the covariance prediction of the lifted chain.
+pub fn congruence(
+    size: usize,
+    a: &[f64],
+    x: &[f64],
+    q: &[f64],
+    scratch: &mut [f64],
+    out: &mut [f64],
+) {
+    let view = |m| MatRef::from_column_major_slice(m, size, size);
+    let a_mat = view(a);
+    product(
+        MatMut::from_column_major_slice_mut(scratch, size, size),
+        Accum::Replace,
+        a_mat,
+        view(x),
+        1.0,
+    );
+    out.copy_from_slice(q);
+    product(
+        MatMut::from_column_major_slice_mut(out, size, size),
+        Accum::Add,
+        view(scratch),
+        a_mat.transpose(),
+        1.0,
+    );
+    crate::linalg::symmetrize(&mut nalgebra::DMatrixViewMut::from_slice(out, size, size));
+}
+
+/// The lower Cholesky factor `L` of a symmetric positive definite matrix, in place (its lower
+/// triangle; the strict upper one is left as it was), with its scratch kept between calls.
+pub struct Cholesky {
+    scratch: MemBuffer,
+    dim: usize,
+}
+
+impl Cholesky {
+    /// Scratch for matrices up to `dim × dim`.
+    pub fn new(dim: usize) -> Self {
+        Self {
+            scratch: MemBuffer::new(cholesky_in_place_scratch::<f64>(
+                dim,
+                Par::Seq,
+                Default::default(),
+            )),
+            dim,
+        }
+    }
+
+    /// Factors `a` in place; `false` when it is not positive definite (a pivot ≤ 0).
+    pub fn factor(&mut self, a: MatMut<'_, f64>) -> bool {
+        assert!(
+            a.nrows() <= self.dim,
+            "Cholesky scratch sized for {}",
+            self.dim
+        );
+        let stack = MemStack::new(&mut self.scratch);
+        let _flush = FlushSubnormals::new();
+        cholesky_in_place(a, Default::default(), Par::Seq, stack, Default::default()).is_ok()
+    }
+}
+
+impl std::fmt::Debug for Cholesky {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Cholesky").field("dim", &self.dim).finish()
+    }
+}
+
+impl Clone for Cholesky {
+    fn clone(&self) -> Self {
+        Self::new(self.dim)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fixed, well-conditioned test matrix.
+    fn matrix(rows: usize, cols: usize, seed: f64) -> faer::Mat<f64> {
+        faer::Mat::from_fn(rows, cols, |r, c| ((r * 7 + c * 13) as f64 * seed).sin())
+    }
+
+    #[test]
+    fn split_products_and_solves_match_the_dense_definitions() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
+        let (a, b) = (matrix(150, 90, 0.37), matrix(90, 200, 0.11));
+        let mut c = matrix(150, 200, 0.53);
+        let expected = &c + (&a * &b) * 2.0;
+        pool.install(|| product(c.as_mut(), Accum::Add, a.as_ref(), b.as_ref(), 2.0));
+        assert!((&c - &expected).norm_max() < 1e-12);
+
+        // L = lower triangle with a dominant diagonal; check L (L⁻¹ B) = B.
+        let l = faer::Mat::from_fn(90, 90, |r, c| match r.cmp(&c) {
+            std::cmp::Ordering::Equal => 3.0 + (r as f64).cos(),
+            std::cmp::Ordering::Greater => 0.1 * ((r * c) as f64).sin(),
+            std::cmp::Ordering::Less => f64::NAN,
+        });
+        let mut x = b.clone();
+        pool.install(|| solve_lower(l.as_ref(), x.as_mut()));
+        let l_lower = faer::Mat::from_fn(90, 90, |r, c| if r >= c { l[(r, c)] } else { 0.0 });
+        assert!((&l_lower * &x - &b).norm_max() < 1e-12);
+
+        // The factor of S = M Mᵀ + I reproduces S; an indefinite matrix is refused.
+        let m = matrix(40, 40, 0.29);
+        let s = &m * m.transpose() + faer::Mat::<f64>::identity(40, 40);
+        let mut f = s.clone();
+        assert!(Cholesky::new(40).factor(f.as_mut()));
+        let low = faer::Mat::from_fn(40, 40, |r, c| if r >= c { f[(r, c)] } else { 0.0 });
+        assert!((&low * low.transpose() - &s).norm_max() < 1e-12);
+        let mut indefinite = -s;
+        assert!(!Cholesky::new(40).factor(indefinite.as_mut()));
+    }
+}
