@@ -150,10 +150,10 @@ def main():
                                                     os.path.join(folder, "inputs.csv"))
                 theirs.append(elapsed)
             d_mean, d_cov = compare(estimates, res, n_sub)
-            row = (f"| {n_sub} ({2 * n_sub}) | {min(ours):.2f} s | {min(theirs):.2f} s "
+            row = (f"| {n_sub} ({2 * n_sub}) | {min(ours):.3f} s | {min(theirs):.3f} s "
                    f"| {min(ours) / min(theirs):.2f} |")
             if args.baseline:
-                row += f" {min(base):.2f} s | {min(base) / min(ours):.2f}× |"
+                row += f" {min(base):.3f} s | {min(base) / min(ours):.2f}× |"
             lines.append(row + f" {d_mean:.1e} | {d_cov:.1e} |")
             print(lines[-1], flush=True)
     lines.append("")

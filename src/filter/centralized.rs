@@ -6,6 +6,8 @@
 //! ordinary Kalman filter of the lifted system on the observed rows. `O((Nn)³)` per step: a
 //! yardstick for the distributed filter, not the default.
 
+use std::sync::Arc;
+
 use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorViewMut};
 
 use crate::error::{Error, Result};
@@ -13,8 +15,8 @@ use crate::filter::ChainFilter;
 use crate::filter::lifted_update::LiftedUpdate;
 use crate::filter::nahi::{self, Workspace};
 use crate::filter::{Dropouts, Update};
-use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::{dense, symmetrize};
+use crate::lifted::{CovarianceScratch, LiftedMoments, LiftedSystem};
+use crate::linalg::symmetrize;
 use crate::model::Model;
 use crate::run::check_update;
 
@@ -40,7 +42,8 @@ impl From<usize> for CentralizedLimits {
 
 /// The centralized filter's state.
 pub struct CentralizedFilter {
-    model: Model,
+    /// Shared so that a step can read it while it changes the filter's state.
+    model: Arc<Model>,
     known: bool,
     t: usize,
     sys: LiftedSystem,
@@ -50,8 +53,8 @@ pub struct CentralizedFilter {
     x_filt: Vec<f64>,
     p_filt: Vec<f64>,
     update: LiftedUpdate,
-    /// `Nn × Nn` scratch of the prediction.
-    scratch: Vec<f64>,
+    /// Scratch of the covariance prediction.
+    scratch: CovarianceScratch,
     s_ii: DMatrix<f64>,
     js: DMatrix<f64>,
     /// Per-subsystem diagonal blocks of the last output, `N·n²` values.
@@ -91,7 +94,7 @@ impl CentralizedFilter {
         let mut block_pred = vec![0.0; big_n * n * n];
         Self::diagonal_blocks(&t_pred, size, n, &mut block_pred);
         Ok(Self {
-            model: model.clone(),
+            model: Arc::new(model.clone()),
             known,
             t: 1,
             sys: LiftedSystem::new(model, 1)?,
@@ -101,7 +104,7 @@ impl CentralizedFilter {
             x_pred,
             t_pred,
             update: LiftedUpdate::new(big_n, n, d.q),
-            scratch: vec![0.0; size * size],
+            scratch: CovarianceScratch::default(),
             s_ii: DMatrix::zeros(n, n),
             js: DMatrix::zeros(d.q, n),
             block_filt: block_pred.clone(),
@@ -144,7 +147,7 @@ impl CentralizedFilter {
     /// The mixture update of step `t` into `x_filt`, `p_filt` and the arrival
     /// probabilities.
     fn mixture_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = &self.model.clone();
+        let model = &Arc::clone(&self.model);
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
         let size = big_n * n;
@@ -228,7 +231,7 @@ impl CentralizedFilter {
     /// Nahi's update of step `t` on the lifted system (docs/theory.md §7), with the block
     /// structure of its measurement ([`LiftedUpdate`]).
     fn linear_update(&mut self, t: usize, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = &self.model.clone();
+        let model = &Arc::clone(&self.model);
         let d = model.dims;
         let (n, q, m, big_n) = (d.n, d.q, d.m, model.subsystems);
         let window = model.window(t);
@@ -289,7 +292,7 @@ impl CentralizedFilter {
 
 impl ChainFilter for CentralizedFilter {
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
-        let model = &self.model.clone();
+        let model = &Arc::clone(&self.model);
         let d = model.dims;
         let (n, big_n) = (d.n, model.subsystems);
         let size = big_n * n;
@@ -308,16 +311,10 @@ impl ChainFilter for CentralizedFilter {
             let uu = nalgebra::DVectorView::from_slice(u, u.len());
             xp.gemv(1.0, &self.sys.u_eff, &uu, 1.0);
         }
-        dense::congruence(
-            size,
-            self.sys.a_eff.as_slice(),
-            &self.p_filt,
-            self.sys.q_big.as_slice(),
-            &mut self.scratch,
-            &mut self.t_pred,
-        );
+        self.sys
+            .covariance_step(model, &self.p_filt, &mut self.t_pred, &mut self.scratch);
         if let Some(mom) = &mut self.moments {
-            mom.propagate(&self.sys, u);
+            mom.propagate(model, &self.sys, u);
         }
         Self::diagonal_blocks(&self.p_filt, size, n, &mut self.block_filt);
         Self::diagonal_blocks(&self.t_pred, size, n, &mut self.block_pred);

@@ -16,11 +16,10 @@
 //! formed only when asked for: [`LiftedUpdate::gain_transposed`]).
 
 use faer::{Accum, ColMut, MatMut, MatRef};
-use nalgebra::{DMatrix, DMatrixViewMut};
+use nalgebra::DMatrix;
 
 use crate::filter::nahi::LN_2PI;
-use crate::linalg::dense::{Cholesky, product, solve_lower};
-use crate::linalg::symmetrize;
+use crate::linalg::dense::{Cholesky, solve_lower, symmetric_product};
 
 /// The measurement model of one step and the scratch of the update, sized once for a chain
 /// of `blocks` subsystems of state size `n` and measurement size `q`.
@@ -35,8 +34,10 @@ pub struct LiftedUpdate {
     r: Vec<f64>,
     /// `ỹ`, `N q` values; NaN where the row is not in the data.
     innov: Vec<f64>,
-    /// The rows received, in order.
-    received: Vec<usize>,
+    /// The rows received, in order: `(row, block, k)`, row `k` of block `block`.
+    received: Vec<(usize, usize, usize)>,
+    /// Those rows of `H`, `n` values each.
+    h_rows: Vec<f64>,
     /// `H T` on the received rows (`r × Nn`), then `V = L⁻¹ H T`.
     v: Vec<f64>,
     /// `Σ` on the received rows (`r × r`), then its factor `L` in its lower triangle.
@@ -57,6 +58,7 @@ impl LiftedUpdate {
             r: vec![0.0; blocks * q * q],
             innov: vec![0.0; rows],
             received: Vec::with_capacity(rows),
+            h_rows: Vec::with_capacity(rows * n),
             v: Vec::with_capacity(rows * blocks * n),
             sigma: Vec::with_capacity(rows * rows),
             e: Vec::with_capacity(rows),
@@ -89,8 +91,11 @@ impl LiftedUpdate {
         let (n, q) = (self.n, self.q);
         let size = self.blocks * n;
         self.received.clear();
-        self.received
-            .extend((0..self.innov.len()).filter(|&k| !self.innov[k].is_nan()));
+        self.received.extend(
+            (0..self.innov.len())
+                .filter(|&row| !self.innov[row].is_nan())
+                .map(|row| (row, row / q, row % q)),
+        );
         let rows = self.received.len();
         if rows == 0 {
             x_filt.copy_from_slice(x_pred);
@@ -98,19 +103,22 @@ impl LiftedUpdate {
             return Some(0.0);
         }
         // H T: row (i, k) of H times T's block row i, column by column.
+        self.h_rows.clear();
+        for &(_, i, k) in &self.received {
+            let h_i = &self.h[i * q * n..(i + 1) * q * n];
+            self.h_rows.extend((0..n).map(|l| h_i[k + l * q]));
+        }
         self.v.resize(rows * size, 0.0);
         for (t_col, v_col) in t_pred.chunks_exact(size).zip(self.v.chunks_exact_mut(rows)) {
-            for (out, &row) in v_col.iter_mut().zip(&self.received) {
-                let (i, k) = (row / q, row % q);
-                let h_i = &self.h[i * q * n..(i + 1) * q * n];
+            let gathered = v_col.iter_mut().zip(&self.received);
+            for ((out, &(_, i, _)), h_row) in gathered.zip(self.h_rows.chunks_exact(n)) {
                 let t_i = &t_col[i * n..(i + 1) * n];
-                *out = (0..n).map(|l| h_i[k + l * q] * t_i[l]).sum();
+                *out = h_row.iter().zip(t_i).map(|(h, t)| h * t).sum();
             }
         }
         // Σ = (H T) Hᵀ + R_eff: column (j, k) takes H_j's row k against H T's block column j.
         self.sigma.resize(rows * rows, 0.0);
-        for (b, &row) in self.received.iter().enumerate() {
-            let (j, kb) = (row / q, row % q);
+        for (b, &(_, j, kb)) in self.received.iter().enumerate() {
             let col = &mut self.sigma[b * rows..(b + 1) * rows];
             col.fill(0.0);
             for l in 0..n {
@@ -122,7 +130,7 @@ impl LiftedUpdate {
             }
             // The rows of subsystem j lie within q of row b (the received rows are sorted).
             for a in b.saturating_sub(q)..(b + q).min(rows) {
-                let (i, ka) = (self.received[a] / q, self.received[a] % q);
+                let (_, i, ka) = self.received[a];
                 if i == j {
                     col[a] += self.r[j * q * q + ka + kb * q];
                 }
@@ -137,7 +145,8 @@ impl LiftedUpdate {
         }
         let l = MatRef::from_column_major_slice(&self.sigma, rows, rows);
         self.e.clear();
-        self.e.extend(self.received.iter().map(|&k| self.innov[k]));
+        self.e
+            .extend(self.received.iter().map(|&(row, _, _)| self.innov[row]));
         solve_lower(l, ColMut::from_slice_mut(&mut self.e).as_mat_mut());
         solve_lower(
             l,
@@ -153,15 +162,14 @@ impl LiftedUpdate {
                     .sum::<f64>();
         }
         p_filt.copy_from_slice(t_pred);
-        product(
+        symmetric_product(
             MatMut::from_column_major_slice_mut(p_filt, size, size),
             Accum::Add,
             v.transpose(),
             v,
             -1.0,
         );
-        symmetrize(&mut DMatrixViewMut::from_slice(p_filt, size, size));
-        let log_det: f64 = (0..rows).map(|k| 2.0 * l[(k, k)].ln()).sum();
+        let log_det = 2.0 * log_product((0..rows).map(|k| l[(k, k)]));
         let norm: f64 = self.e.iter().map(|e| e * e).sum();
         Some(-0.5 * (rows as f64 * LN_2PI + log_det + norm))
     }
@@ -178,13 +186,28 @@ impl LiftedUpdate {
             faer::Par::Seq,
         );
         let mut out = DMatrix::zeros(self.innov.len(), size);
-        for (a, &row) in self.received.iter().enumerate() {
+        for (a, &(row, _, _)) in self.received.iter().enumerate() {
             for c in 0..size {
                 out[(row, c)] = w[(a, c)];
             }
         }
         out
     }
+}
+
+/// `Σ log d` of positive finite numbers with a logarithm per hundred or so of them instead of
+/// one each: the running product is moved into the sum when it leaves `[1e-100, 1e100]`,
+/// before it could overflow or lose digits (a factor is at most `√f64::MAX ≈ 1.3e154`).
+fn log_product(factors: impl Iterator<Item = f64>) -> f64 {
+    let (mut sum, mut product) = (0.0, 1.0_f64);
+    for d in factors {
+        product *= d;
+        if !(1e-100..=1e100).contains(&product) {
+            sum += product.ln();
+            product = 1.0;
+        }
+    }
+    sum + product.ln()
 }
 
 #[cfg(test)]
@@ -249,6 +272,21 @@ mod tests {
         assert_eq!(w.shape(), (rows, size));
         assert!(w.row(lost).iter().all(|&v| v == 0.0));
         assert!((w.select_rows(&kept) - gain.transpose()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn log_product_is_the_sum_of_the_logarithms() {
+        let factors: Vec<f64> = (0..500)
+            .map(|k| 10f64.powf(((k * 37) % 61) as f64 - 30.0) * 1.7)
+            .collect();
+        let expected: f64 = factors.iter().map(|d| d.ln()).sum();
+        assert!(
+            (log_product(factors.into_iter()) - expected).abs() < 1e-10 * expected.abs().max(1.0)
+        );
+        // Factors at the ends of the range: no overflow, no subnormal product.
+        let extremes: [f64; 6] = [1.3e154, 1.2e154, 1e-160, 2e-160, 3.0, 1.3e154];
+        let expected: f64 = extremes.iter().map(|d| d.ln()).sum();
+        assert!((log_product(extremes.into_iter()) - expected).abs() < 1e-12 * expected.abs());
     }
 
     #[test]

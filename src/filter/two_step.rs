@@ -1006,7 +1006,7 @@ impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
         }
         if let Some((sys, moments)) = &mut self.lifted {
             sys.prepare(model, t)?;
-            moments.propagate(sys, u);
+            moments.propagate(model, sys, u);
         }
         // A blown-up step 1 (e.g. the transfer solver on a long chain) must not pass as data.
         if let Some(i) = failed {

@@ -7,7 +7,9 @@
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch};
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+use faer::reborrow::ReborrowMut;
 use faer::{Accum, MatMut, MatRef, Par};
 
 use crate::linalg::subnormal::FlushSubnormals;
@@ -72,34 +74,82 @@ fn solve_lower_in(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>, pieces: usize) {
     );
 }
 
-/// `out = A X Aᵀ + Q` (symmetrised) for `size × size` column-major matrices, with `scratch`
-/// of that size: the covariance prediction of the lifted chain.
-pub fn congruence(
-    size: usize,
-    a: &[f64],
-    x: &[f64],
-    q: &[f64],
-    scratch: &mut [f64],
-    out: &mut [f64],
+/// `dst ← α lhs rhs`, or `dst ← dst + α lhs rhs` with `Accum::Add`, for a square `dst`
+/// known to be symmetric (as is `P − Vᵀ V` or `(A P) Aᵀ`): only its lower triangle is
+/// computed, on the rayon threads, and then copied to the upper one: half the work of
+/// [`product`], and an exactly symmetric result.
+pub fn symmetric_product(
+    mut dst: MatMut<'_, f64>,
+    accum: Accum,
+    lhs: MatRef<'_, f64>,
+    rhs: MatRef<'_, f64>,
+    alpha: f64,
 ) {
-    let view = |m| MatRef::from_column_major_slice(m, size, size);
-    let a_mat = view(a);
-    product(
-        MatMut::from_column_major_slice_mut(scratch, size, size),
-        Accum::Replace,
-        a_mat,
-        view(x),
-        1.0,
+    lower_product_in(
+        dst.rb_mut(),
+        accum,
+        lhs,
+        rhs,
+        alpha,
+        rayon::current_num_threads(),
     );
-    out.copy_from_slice(q);
-    product(
-        MatMut::from_column_major_slice_mut(out, size, size),
-        Accum::Add,
-        view(scratch),
-        a_mat.transpose(),
-        1.0,
+    for c in 0..dst.ncols() {
+        for r in c + 1..dst.nrows() {
+            dst[(c, r)] = dst[(r, c)];
+        }
+    }
+}
+
+/// The lower triangle of `dst` (square) in `pieces` parts of equal work: the first `c`
+/// columns (a triangle and the rectangle below it) and the triangle right of them.
+fn lower_product_in(
+    dst: MatMut<'_, f64>,
+    accum: Accum,
+    lhs: MatRef<'_, f64>,
+    rhs: MatRef<'_, f64>,
+    alpha: f64,
+    pieces: usize,
+) {
+    let k = dst.ncols();
+    if pieces < 2 || k < 2 * MIN_SPLIT_COLUMNS {
+        let _flush = FlushSubnormals::new();
+        triangular::matmul(
+            dst,
+            BlockStructure::TriangularLower,
+            accum,
+            lhs,
+            BlockStructure::Rectangular,
+            rhs,
+            BlockStructure::Rectangular,
+            alpha,
+            Par::Seq,
+        );
+        return;
+    }
+    let first = pieces / 2;
+    // The first c columns hold the share first / pieces of the triangle's k² / 2 entries:
+    // c² / 2 + (k − c) c = (first / pieces) k² / 2.
+    let share = first as f64 / pieces as f64;
+    let c = ((k as f64 * (1.0 - (1.0 - share).sqrt())).round() as usize).clamp(1, k - 1);
+    let (top_left, _, bottom_left, bottom_right) = dst.split_at_mut(c, c);
+    let (lhs_top, lhs_bottom) = lhs.split_at_row(c);
+    let (rhs_left, rhs_right) = rhs.split_at_col(c);
+    rayon::join(
+        || {
+            lower_product_in(top_left, accum, lhs_top, rhs_left, alpha, first);
+            product_in(bottom_left, accum, lhs_bottom, rhs_left, alpha, first);
+        },
+        || {
+            lower_product_in(
+                bottom_right,
+                accum,
+                lhs_bottom,
+                rhs_right,
+                alpha,
+                pieces - first,
+            )
+        },
     );
-    crate::linalg::symmetrize(&mut nalgebra::DMatrixViewMut::from_slice(out, size, size));
 }
 
 /// The lower Cholesky factor `L` of a symmetric positive definite matrix, in place (its lower
@@ -167,6 +217,17 @@ mod tests {
         let expected = &c + (&a * &b) * 2.0;
         pool.install(|| product(c.as_mut(), Accum::Add, a.as_ref(), b.as_ref(), 2.0));
         assert!((&c - &expected).norm_max() < 1e-12);
+
+        // A symmetric result from its lower triangle, split in three parts: S − 2 Vᵀ V.
+        let v = matrix(90, 200, 0.23);
+        let s = v.transpose() * &v + faer::Mat::<f64>::identity(200, 200);
+        let mut sym = s.clone();
+        pool.install(|| {
+            symmetric_product(sym.as_mut(), Accum::Add, v.transpose(), v.as_ref(), -2.0)
+        });
+        let expected = &s - (v.transpose() * &v) * 2.0;
+        assert!((&sym - &expected).norm_max() < 1e-12);
+        assert!((&sym - sym.transpose()).norm_max() == 0.0);
 
         // L = lower triangle with a dominant diagonal; check L (L⁻¹ B) = B.
         let l = faer::Mat::from_fn(90, 90, |r, c| match r.cmp(&c) {

@@ -340,7 +340,7 @@ fn lifted_second_moments_match_monte_carlo() {
             }
         }
         sys.prepare(&model, t).unwrap();
-        moments.propagate(&sys, &u_run[t - 1]);
+        moments.propagate(&model, &sys, &u_run[t - 1]);
     }
 }
 

@@ -653,7 +653,7 @@ impl JointFilter {
             }
             Moments::Lifted { sys, moments } => {
                 sys.prepare(model, t)?;
-                moments.propagate(sys, u);
+                moments.propagate(model, sys, u);
             }
             Moments::Local {
                 mean,
