@@ -126,13 +126,6 @@ impl Workspace {
         }
     }
 
-    /// The measurement model for [`kalman_update`]: `H` (`q × n`), `R_eff` (`q × q`) and the
-    /// innovation `ỹ` (`q`).
-    pub fn measurement_mut(&mut self) -> (&mut DMatrix<f64>, &mut DMatrix<f64>, &mut DVector<f64>) {
-        self.dropped = 0;
-        (&mut self.h, &mut self.reff, &mut self.innov)
-    }
-
     /// `W = Σ⁻¹ H T` of the last update: the transposed gain, `L = Wᵀ`.
     pub fn gain_transposed(&self) -> &DMatrix<f64> {
         &self.w
