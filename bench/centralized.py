@@ -28,6 +28,8 @@ import tomllib
 
 import numpy as np
 
+from fit import lifted_transition
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SISFILT = os.environ.get("SISFILT", os.path.join(ROOT, "target", "release", "sisfilt"))
 CONFIG = os.path.join(ROOT, "configs", "platoon.toml")
@@ -56,18 +58,10 @@ def lifted_kalman_filter(n_sub, meas, inputs):
     with open(CONFIG, "rb") as f:
         cfg = tomllib.load(f)
     mdl = cfg["model"]
-    a, b, c, d, j, q_cov, m_cov = (np.array(mdl[k], float) for k in "ABCDJQM")
-    assert not np.any(np.array(mdl["G"])), "the lifted chain here needs G = 0"
-    plus = cfg["interconnection"]["plus"]
-    n, q = a.shape[0], j.shape[0]
+    c, j, q_cov, m_cov = (np.array(mdl[k], float) for k in "CJQM")
+    n, q = np.array(mdl["A"]).shape[0], j.shape[0]
     big = n_sub * n
-    a_eff = np.zeros((big, big))
-    for i in range(n_sub):
-        a_eff[i * n:(i + 1) * n, i * n:(i + 1) * n] = a
-        if i > 0:  # v⁺(i) = w⁺(i − 1) = D⁺ x(i − 1)
-            a_eff[i * n:(i + 1) * n, (i - 1) * n:i * n] = b[:, :plus] @ d[:plus, :]
-        if i < n_sub - 1:  # v⁻(i) = w⁻(i + 1) = D⁻ x(i + 1)
-            a_eff[i * n:(i + 1) * n, (i + 1) * n:(i + 2) * n] = b[:, plus:] @ d[plus:, :]
+    a_eff = lifted_transition(cfg, n_sub)
     y = np.genfromtxt(meas, delimiter=",", skip_header=1)[:, 2:]
     steps = y.shape[0] // n_sub
     u = np.loadtxt(inputs, delimiter=",", skiprows=1)[:, 2:].reshape(steps, n_sub, -1)

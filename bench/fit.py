@@ -104,6 +104,26 @@ def recovery(chain, seeds, work):
     return rows, times, fits
 
 
+def lifted_transition(cfg, n_sub):
+    """`A_eff` of a chain of `n_sub` subsystems without direct interconnection (G = 0): block
+    tridiagonal, `A` on the diagonal, `B⁺ D⁺` below it and `B⁻ D⁻` above."""
+    import numpy as np
+
+    mdl = cfg["model"]
+    a, b, d = (np.array(mdl[k], float) for k in "ABD")
+    assert not np.any(np.array(mdl.get("G", [[0.0]]))), "the lifted chain here needs G = 0"
+    plus = cfg["interconnection"]["plus"]
+    n = a.shape[0]
+    a_eff = np.zeros((n_sub * n, n_sub * n))
+    for i in range(n_sub):
+        a_eff[i * n:(i + 1) * n, i * n:(i + 1) * n] = a
+        if i > 0:  # v⁺(i) = w⁺(i − 1) = D⁺ x(i − 1)
+            a_eff[i * n:(i + 1) * n, (i - 1) * n:i * n] = b[:, :plus] @ d[:plus, :]
+        if i < n_sub - 1:  # v⁻(i) = w⁻(i + 1) = D⁻ x(i + 1)
+            a_eff[i * n:(i + 1) * n, (i + 1) * n:(i + 2) * n] = b[:, plus:] @ d[plus:, :]
+    return a_eff
+
+
 def lifted_statsmodels(config_path, meas, inputs, n_sub):
     """statsmodels' fit of log(Q11, Q22, M11, M22) on the lifted platoon (G = 0, R = 0)."""
     import numpy as np
@@ -113,18 +133,10 @@ def lifted_statsmodels(config_path, meas, inputs, n_sub):
     with open(config_path, "rb") as f:
         cfg = tomllib.load(f)
     mdl = cfg["model"]
-    a, b, c, d, j = (np.array(mdl[k], float) for k in ["A", "B", "C", "D", "J"])
-    assert not np.any(np.array(mdl.get("G", [[0.0]]))), "the lifted chain here needs G = 0"
-    plus = cfg["interconnection"]["plus"]
-    n, q = a.shape[0], j.shape[0]
+    c, j = (np.array(mdl[k], float) for k in "CJ")
+    n, q = np.array(mdl["A"]).shape[0], j.shape[0]
     big = n_sub * n
-    a_eff = np.zeros((big, big))
-    for i in range(n_sub):
-        a_eff[i * n:(i + 1) * n, i * n:(i + 1) * n] = a
-        if i > 0:  # v⁺(i) = w⁺(i − 1) = D⁺ x(i − 1)
-            a_eff[i * n:(i + 1) * n, (i - 1) * n:i * n] = b[:, :plus] @ d[:plus, :]
-        if i < n_sub - 1:  # v⁻(i) = w⁻(i + 1) = D⁻ x(i + 1)
-            a_eff[i * n:(i + 1) * n, (i + 1) * n:(i + 2) * n] = b[:, plus:] @ d[plus:, :]
+    a_eff = lifted_transition(cfg, n_sub)
     design = np.kron(np.eye(n_sub), j)
     y = np.loadtxt(meas, delimiter=",", skiprows=1)[:, 2:]
     steps = y.shape[0] // n_sub
