@@ -89,7 +89,11 @@ impl CentralizedFilter {
         })?;
         let init = LiftedMoments::initial(model);
         let x_pred = init.mean.as_slice().to_vec();
-        let t_pred = init.cov.as_slice().to_vec();
+        // The update reads T by columns for its rows (T symmetric); a covariance given
+        // symmetric up to the config's tolerance is made exactly so.
+        let t_pred = ((&init.cov + init.cov.transpose()) * 0.5)
+            .as_slice()
+            .to_vec();
         // Before the first step, predicted() is the prior of step 1.
         let mut block_pred = vec![0.0; big_n * n * n];
         Self::diagonal_blocks(&t_pred, size, n, &mut block_pred);

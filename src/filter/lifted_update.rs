@@ -77,10 +77,10 @@ impl LiftedUpdate {
         )
     }
 
-    /// The update of the prediction `x̂ = x_pred`, `T = t_pred` (`Nn × Nn` column-major) on
-    /// the model filled by [`Self::block_mut`]: writes `x̂(t|t)` and `P(t|t)` (symmetrised)
-    /// and returns `log N(ỹ; 0, Σ)` over the received rows (0 with none), or `None` when `Σ`
-    /// is not positive definite.
+    /// The update of the prediction `x̂ = x_pred`, `T = t_pred` (`Nn × Nn` column-major,
+    /// symmetric) on the model filled by [`Self::block_mut`]: writes `x̂(t|t)` and `P(t|t)`
+    /// (symmetrised) and returns `log N(ỹ; 0, Σ)` over the received rows (0 with none), or
+    /// `None` when `Σ` is not positive definite.
     pub fn update(
         &mut self,
         x_pred: &[f64],
@@ -102,18 +102,26 @@ impl LiftedUpdate {
             p_filt.copy_from_slice(t_pred);
             return Some(0.0);
         }
-        // H T: row (i, k) of H times T's block row i, column by column.
+        // H T on the received rows.
         self.h_rows.clear();
         for &(_, i, k) in &self.received {
             let h_i = &self.h[i * q * n..(i + 1) * q * n];
             self.h_rows.extend((0..n).map(|l| h_i[k + l * q]));
         }
+        // Row (i, k) of H T is Σ_l H_i[k, l] T[i n + l, :] = Σ_l H_i[k, l] T[:, i n + l]ᵀ (T is
+        // symmetric): a sum of T's contiguous columns.
+        self.v.clear();
         self.v.resize(rows * size, 0.0);
-        for (t_col, v_col) in t_pred.chunks_exact(size).zip(self.v.chunks_exact_mut(rows)) {
-            let gathered = v_col.iter_mut().zip(&self.received);
-            for ((out, &(_, i, _)), h_row) in gathered.zip(self.h_rows.chunks_exact(n)) {
-                let t_i = &t_col[i * n..(i + 1) * n];
-                *out = h_row.iter().zip(t_i).map(|(h, t)| h * t).sum();
+        for (a, (&(_, i, _), h_row)) in self
+            .received
+            .iter()
+            .zip(self.h_rows.chunks_exact(n))
+            .enumerate()
+        {
+            for (l, &h) in h_row.iter().enumerate() {
+                let t_col = &t_pred[(i * n + l) * size..(i * n + l + 1) * size];
+                let v_row = self.v[a..].iter_mut().step_by(rows);
+                v_row.zip(t_col).for_each(|(v, t)| *v += h * t);
             }
         }
         // Σ = (H T) Hᵀ + R_eff: column (j, k) takes H_j's row k against H T's block column j.

@@ -502,7 +502,7 @@ struct StepBatch {
 
 /// Rows handed to the writer thread at a time, at least (short chains batch several steps, so
 /// that waking the thread does not cost more than the work it is given).
-const BATCH_MIN_ROWS: usize = 4096;
+const BATCH_MIN_ROWS: usize = 512;
 
 /// An [`EstimatesWriter`] on a thread of its own, behind the caller: formatting and the
 /// `write` system calls of step `t` overlap the reading and filtering of the next steps.
