@@ -35,6 +35,11 @@ SISFILT = os.environ.get("SISFILT", os.path.join(ROOT, "target", "release", "sis
 CONFIG = os.path.join(ROOT, "configs", "platoon.toml")
 
 
+# Seconds to wait before timing sisfilt: statsmodels' BLAS threads spin on both cores for a
+# while after its filter, and would slow the process timed next.
+QUIET = 0.3
+
+
 def run(*args, cwd):
     out = subprocess.run(list(args), cwd=cwd, capture_output=True, text=True)
     if out.returncode != 0:
@@ -43,6 +48,7 @@ def run(*args, cwd):
 
 
 def timed_estimate(binary, meas, out, cwd):
+    time.sleep(QUIET)
     start = time.perf_counter()
     run(binary, "estimate", "--meas", meas, "--filter", "centralized", "--dropouts", "known",
         "--max-lifted", "100000", "--out", out, "-q", cwd=cwd)

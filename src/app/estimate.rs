@@ -18,8 +18,8 @@ use sisfilt::io::estimates::{
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
 use sisfilt::run::{
-    CheckedSpec, EstimateSink, FileSource, Note, ReaderTruth, RunSpec, StepEstimates, Timings,
-    TruthSource,
+    CheckedSpec, EstimateSink, FileSource, Note, ReadAhead, ReaderTruth, RunSpec, StepEstimates,
+    StepSource, Timings, TruthSource,
 };
 
 use super::choice::choice;
@@ -99,9 +99,10 @@ pub struct EstimateArgs {
     /// the innovation check is printed on standard error (and kept in JSON) whatever.
     #[arg(long)]
     pub nis: bool,
-    /// Print on standard error the wall-clock time spent reading the input files, filtering,
-    /// scoring the innovations and handing the estimates to the writer thread, and the time
-    /// that thread spent formatting and writing them (a `timings:` line).
+    /// Print on standard error the wall-clock time spent reading the input files (waiting for
+    /// them, when a thread reads them ahead), filtering, scoring the innovations and handing
+    /// the estimates to the writer thread, and the time that thread spent formatting and
+    /// writing them (a `timings:` line).
     #[arg(long)]
     pub timings: bool,
     #[command(flatten)]
@@ -268,12 +269,22 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         writer: BackgroundWriter::new(writer, big_n),
         out_name,
     };
-    let mut source = FileSource::new(meas, inputs);
+    let files = FileSource::new(meas, inputs);
+    let mut source: Box<dyn StepSource> = match spec.reads_ahead() {
+        // A stream is handed over step by step, as it comes.
+        true => Box::new(ReadAhead::new(
+            files,
+            big_n * d.q,
+            big_n * d.m,
+            !is_regular_file(&args.data.meas),
+        )),
+        false => Box::new(files),
+    };
     let mut truth = truth.map(ReaderTruth);
     let report = sisfilt::run::stream(
         model,
         &spec,
-        &mut source,
+        source.as_mut(),
         truth.as_mut().map(|t| t as &mut dyn TruthSource),
         &mut sink,
     )

@@ -27,7 +27,7 @@ use crate::smoother::{Smoother, memory_bytes};
 
 use score::Scores;
 pub use source::{
-    ArraySource, FileSource, ReaderTruth, SliceTruth, StepSource, TruthSource, read_all,
+    ArraySource, FileSource, ReadAhead, ReaderTruth, SliceTruth, StepSource, TruthSource, read_all,
 };
 pub use spec::{CheckedSpec, RunSpec, Setting, SpecError, check_update};
 

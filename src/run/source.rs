@@ -2,6 +2,8 @@
 //! the truth of a simulated run ([`TruthSource`]), from files or from arrays in memory.
 
 use std::io::Read;
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
 
 use crate::error::{Error, Result};
 use crate::inputs::{InputStream, RunInputs};
@@ -79,6 +81,153 @@ impl<R: Read + Send> StepSource for FileSource<R> {
             Some(inputs) => inputs.finish(steps),
             None => Ok(()),
         }
+    }
+}
+
+/// Sources whose steps hold at least this many values (`N (q + m)`) are handed over a step at
+/// a time; shorter steps in batches of about this many values, so that waking either thread
+/// costs less than the work it is given.
+const READ_AHEAD_VALUES: usize = 2048;
+
+/// A [`StepSource`] read on a thread of its own, ahead of the caller: the parsing of the next
+/// steps overlaps the filtering of this one. At most two batches wait (memory flat in `T`);
+/// an error of the source comes after every step before it, as from the source itself, and
+/// [`StepSource::finish`] runs on the caller's side, on the source given back at its end.
+pub struct ReadAhead<S> {
+    /// Batches read, then the end of the source.
+    read: Receiver<Ahead<S>>,
+    /// Batches consumed, back to the reading thread.
+    free: SyncSender<StepBatch>,
+    /// The batch being consumed, and how many of its steps are.
+    current: Option<(StepBatch, usize)>,
+    /// The source, once the thread has given it back at its end.
+    ended: Option<S>,
+    thread: Option<JoinHandle<()>>,
+}
+
+/// What the reading thread hands over.
+enum Ahead<S> {
+    Steps(StepBatch),
+    /// The source failed: no step after this.
+    Failed(Error),
+    /// The source is at its end, given back for [`StepSource::finish`].
+    Ended(S),
+}
+
+/// Consecutive steps: their `t`, and their `y` and `u` one after the other.
+struct StepBatch {
+    t: Vec<usize>,
+    y: Vec<f64>,
+    u: Vec<f64>,
+}
+
+impl<S: StepSource + Send + 'static> ReadAhead<S> {
+    /// Starts reading `source`, whose steps hold `step_y` measurement and `step_u` input
+    /// values. A `live` source (a pipe, a terminal) hands each step over as soon as it is
+    /// read; a file in batches.
+    pub fn new(mut source: S, step_y: usize, step_u: usize, live: bool) -> Self {
+        let per_batch = match live {
+            true => 1,
+            false => READ_AHEAD_VALUES.div_ceil((step_y + step_u).max(1)),
+        };
+        let (to_caller, read) = sync_channel::<Ahead<S>>(2);
+        let (free, from_caller) = sync_channel::<StepBatch>(2);
+        for _ in 0..2 {
+            free.send(StepBatch {
+                t: Vec::with_capacity(per_batch),
+                y: vec![0.0; per_batch * step_y],
+                u: vec![0.0; per_batch * step_u],
+            })
+            .expect("the channel has room");
+        }
+        let thread = std::thread::Builder::new()
+            .name("sisfilt-reader".into())
+            .spawn(move || {
+                // Ends when the caller is gone (its ends of the channels dropped).
+                for mut batch in from_caller {
+                    batch.t.clear();
+                    let mut end = None;
+                    while batch.t.len() < per_batch {
+                        let k = batch.t.len();
+                        let y = &mut batch.y[k * step_y..(k + 1) * step_y];
+                        let u = &mut batch.u[k * step_u..(k + 1) * step_u];
+                        match source.next_step(y, u) {
+                            Ok(Some(t)) => batch.t.push(t),
+                            Ok(None) => {
+                                end = Some(Ok(()));
+                                break;
+                            }
+                            Err(e) => {
+                                end = Some(Err(e));
+                                break;
+                            }
+                        }
+                    }
+                    if !batch.t.is_empty() && to_caller.send(Ahead::Steps(batch)).is_err() {
+                        return;
+                    }
+                    match end {
+                        None => {}
+                        Some(Ok(())) => {
+                            let _ = to_caller.send(Ahead::Ended(source));
+                            return;
+                        }
+                        Some(Err(e)) => {
+                            let _ = to_caller.send(Ahead::Failed(e));
+                            return;
+                        }
+                    }
+                }
+            })
+            .expect("the reader thread starts");
+        Self {
+            read,
+            free,
+            current: None,
+            ended: None,
+            thread: Some(thread),
+        }
+    }
+}
+
+impl<S: StepSource> StepSource for ReadAhead<S> {
+    fn next_step(&mut self, y: &mut [f64], u: &mut [f64]) -> Result<Option<usize>> {
+        loop {
+            if let Some((batch, k)) = &mut self.current
+                && *k < batch.t.len()
+            {
+                let (step_y, step_u) = (y.len(), u.len());
+                y.copy_from_slice(&batch.y[*k * step_y..(*k + 1) * step_y]);
+                u.copy_from_slice(&batch.u[*k * step_u..(*k + 1) * step_u]);
+                *k += 1;
+                return Ok(Some(batch.t[*k - 1]));
+            }
+            if let Some((batch, _)) = self.current.take() {
+                // The thread may be gone (at the source's end): nothing to give back.
+                let _ = self.free.send(batch);
+            }
+            if self.ended.is_some() {
+                return Ok(None);
+            }
+            match self.read.recv() {
+                Ok(Ahead::Steps(batch)) => self.current = Some((batch, 0)),
+                Ok(Ahead::Failed(e)) => return Err(e),
+                Ok(Ahead::Ended(source)) => self.ended = Some(source),
+                // The thread ends without a word only when it panicked: so does the caller.
+                Err(_) => match self.thread.take().map(JoinHandle::join) {
+                    Some(Err(panic)) => std::panic::resume_unwind(panic),
+                    _ => unreachable!("the reading thread ends with Failed or Ended"),
+                },
+            }
+        }
+    }
+
+    /// After [`StepSource::next_step`] returned `None`: the source's own `finish`.
+    fn finish(&mut self, steps: usize) -> Result<()> {
+        let source = self.ended.as_mut();
+        source
+            .expect("finish comes after the last step")
+            .finish(steps)
     }
 }
 
@@ -217,4 +366,131 @@ pub fn read_all(model: &Model, source: &mut dyn StepSource) -> Result<(Vec<f64>,
     }
     source.finish(steps)?;
     Ok((y, u))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Steps `1..=steps` with `y = (t, −t)` and `u = (10 t)`; an error instead of step
+    /// `fail_at`, a panic instead of step `panic_at`; `finish` refuses any count but `steps`.
+    struct Counting {
+        steps: usize,
+        fail_at: usize,
+        panic_at: usize,
+        t: usize,
+    }
+
+    impl Counting {
+        fn new(steps: usize) -> Self {
+            Self {
+                steps,
+                fail_at: usize::MAX,
+                panic_at: usize::MAX,
+                t: 0,
+            }
+        }
+    }
+
+    impl StepSource for Counting {
+        fn next_step(&mut self, y: &mut [f64], u: &mut [f64]) -> Result<Option<usize>> {
+            if self.t == self.steps {
+                return Ok(None);
+            }
+            self.t += 1;
+            let t = self.t;
+            assert!(t != self.panic_at, "the source broke at t = {t}");
+            if t == self.fail_at {
+                return Err(Error::Usage(format!("bad step {t}")));
+            }
+            (y[0], y[1], u[0]) = (t as f64, -(t as f64), 10.0 * t as f64);
+            Ok(Some(t))
+        }
+
+        fn finish(&mut self, steps: usize) -> Result<()> {
+            match steps == self.steps {
+                true => Ok(()),
+                false => Err(Error::Usage(format!("finished after {steps}"))),
+            }
+        }
+    }
+
+    /// Every step `(t, y, u)` of `source` until it ends or fails, and how.
+    fn drain(source: &mut dyn StepSource) -> (Vec<(usize, [f64; 3])>, Result<()>) {
+        let (mut y, mut u) = ([0.0; 2], [0.0; 1]);
+        let mut steps = Vec::new();
+        loop {
+            match source.next_step(&mut y, &mut u) {
+                Ok(Some(t)) => steps.push((t, [y[0], y[1], u[0]])),
+                Ok(None) => {
+                    let last = steps.last().map_or(0, |s| s.0);
+                    return (steps, source.finish(last));
+                }
+                Err(e) => return (steps, Err(e)),
+            }
+        }
+    }
+
+    /// In batches (three of them, the last one short) and step by step, the steps come as
+    /// from the source itself, then its end and its own `finish`.
+    #[test]
+    fn read_ahead_gives_the_steps_of_its_source_in_order() {
+        let steps = 2 * READ_AHEAD_VALUES.div_ceil(3) + 5;
+        let (expected, end) = drain(&mut Counting::new(steps));
+        assert!(end.is_ok());
+        assert_eq!(expected.len(), steps);
+        for live in [false, true] {
+            let mut ahead = ReadAhead::new(Counting::new(steps), 2, 1, live);
+            let (got, end) = drain(&mut ahead);
+            assert_eq!(got, expected);
+            assert!(end.is_ok());
+            // Ended: no step more, and finish still asks the source.
+            assert!(matches!(
+                ahead.next_step(&mut [0.0; 2], &mut [0.0]),
+                Ok(None)
+            ));
+            assert!(ahead.finish(steps - 1).is_err());
+        }
+    }
+
+    /// An error of the source comes after every step before it, and ends the steps.
+    #[test]
+    fn read_ahead_gives_an_error_after_the_steps_before_it() {
+        for live in [false, true] {
+            let source = Counting {
+                fail_at: 1000,
+                ..Counting::new(5000)
+            };
+            let (got, end) = drain(&mut ReadAhead::new(source, 2, 1, live));
+            assert_eq!(got.len(), 999);
+            assert_eq!(got[998].0, 999);
+            assert_eq!(end.unwrap_err().to_string(), "bad step 1000");
+        }
+    }
+
+    /// A panic of the source is the caller's panic, once the steps before it are consumed.
+    #[test]
+    #[should_panic(expected = "the source broke at t = 7")]
+    fn read_ahead_passes_a_panic_of_its_source_on() {
+        let source = Counting {
+            panic_at: 7,
+            ..Counting::new(100)
+        };
+        let mut ahead = ReadAhead::new(source, 2, 1, true);
+        let (got, _) = drain(&mut ahead);
+        unreachable!("{} steps and no panic", got.len());
+    }
+
+    /// A caller that stops early leaves no thread blocked for ever behind it.
+    #[test]
+    fn read_ahead_stops_when_its_caller_is_gone() {
+        let mut ahead = ReadAhead::new(Counting::new(1_000_000), 2, 1, false);
+        assert!(matches!(
+            ahead.next_step(&mut [0.0; 2], &mut [0.0]),
+            Ok(Some(1))
+        ));
+        let thread = ahead.thread.take().expect("a reading thread");
+        drop(ahead);
+        thread.join().expect("the thread ends without a panic");
+    }
 }
