@@ -47,6 +47,11 @@ def run(*args, cwd):
     return out
 
 
+def secs(seconds):
+    """A time to three or four digits: milliseconds below a second."""
+    return f"{seconds * 1e3:.1f} ms" if seconds < 1 else f"{seconds:.2f} s"
+
+
 def timed_estimate(binary, meas, out, cwd):
     time.sleep(QUIET)
     start = time.perf_counter()
@@ -150,10 +155,10 @@ def main():
                                                     os.path.join(folder, "inputs.csv"))
                 theirs.append(elapsed)
             d_mean, d_cov = compare(estimates, res, n_sub)
-            row = (f"| {n_sub} ({2 * n_sub}) | {min(ours):.3f} s | {min(theirs):.3f} s "
+            row = (f"| {n_sub} ({2 * n_sub}) | {secs(min(ours))} | {secs(min(theirs))} "
                    f"| {min(ours) / min(theirs):.2f} |")
             if args.baseline:
-                row += f" {min(base):.3f} s | {min(base) / min(ours):.2f}× |"
+                row += f" {secs(min(base))} | {min(base) / min(ours):.2f}× |"
             lines.append(row + f" {d_mean:.1e} | {d_cov:.1e} |")
             print(lines[-1], flush=True)
     lines.append("")

@@ -8,7 +8,7 @@
 
 use std::sync::Arc;
 
-use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorViewMut};
+use nalgebra::{DMatrix, DMatrixViewMut};
 
 use crate::error::{Error, Result};
 use crate::filter::ChainFilter;
@@ -16,7 +16,6 @@ use crate::filter::lifted_update::LiftedUpdate;
 use crate::filter::nahi::{self, Workspace};
 use crate::filter::{Dropouts, Update};
 use crate::lifted::{CovarianceScratch, LiftedMoments, LiftedSystem};
-use crate::linalg::symmetrize;
 use crate::model::Model;
 use crate::run::check_update;
 
@@ -119,8 +118,9 @@ impl CentralizedFilter {
     }
 
     /// A bound on the bytes the filter holds (docs/theory.md §12 "Memory"): twenty lifted
-    /// `(N n)²` matrices (the lifted system, moments, covariances and their workspace) and the
-    /// mixture update's `𝒲` and `𝒥`; tests/allocation.rs holds it against the bytes measured.
+    /// `(N n)²` matrices (the lifted system, moments, covariances and their workspace), the
+    /// update's `Σ` and `[V  e]`, and the mixture update's `𝒥 T` and the scratch of its LU
+    /// solve; tests/allocation.rs holds it against the bytes measured.
     /// Not counted: the packing scratch the dense kernels keep per thread (a few megabytes,
     /// sized by the processor's caches, whatever the chain).
     pub fn bytes(model: &Model) -> f64 {
@@ -160,10 +160,7 @@ impl CentralizedFilter {
         };
         let window = model.window(t);
         let mut log_likelihood = 0.0;
-        let mut w_big = DMatrix::zeros(big_n * q, big_n * q);
-        let mut j_big = DMatrix::zeros(big_n * q, size);
-        let mut r = DVector::zeros(big_n * q);
-        let (mut w_i, mut r_i, mut ru) = (vec![0.0; q * q], vec![0.0; q], vec![0.0; q]);
+        let mut ru = vec![0.0; q];
         // The marginals of T(t); `block_pred` is rewritten by the prediction.
         Self::diagonal_blocks(&self.t_pred, size, n, &mut self.block_pred);
         for i in 0..big_n {
@@ -180,8 +177,9 @@ impl CentralizedFilter {
                 known: false,
             };
             let x_i = &self.x_pred[i * n..(i + 1) * n];
-            let Some(a) =
-                nahi::mixture_pseudo_measurement(&meas, x_i, sigma_ii, &mut w_i, &mut r_i, ws)
+            let (j_i, w_i, r_i) = self.update.block_mut(i);
+            j_i.copy_from_slice(prm.J.as_slice());
+            let Some(a) = nahi::mixture_pseudo_measurement(&meas, x_i, sigma_ii, w_i, r_i, ws)
             else {
                 return Err(Error::Numerical {
                     t,
@@ -191,28 +189,19 @@ impl CentralizedFilter {
             };
             arrival[i] = a.probability;
             log_likelihood += a.loglik;
-            w_big.view_mut((i * q, i * q), (q, q)).copy_from_slice(&w_i);
-            j_big.view_mut((i * q, i * n), (q, n)).copy_from(&prm.J);
-            r.rows_mut(i * q, q).copy_from_slice(&r_i);
         }
-        let t_mat = DMatrixView::from_slice(&self.t_pred, size, size);
-        let jt = &j_big * t_mat;
-        let w_jt = &w_big * &jt;
-        let lu = (DMatrix::identity(big_n * q, big_n * q) + &w_jt * j_big.transpose()).lu();
-        let not_invertible = || Error::Numerical {
-            t,
-            i: 0,
-            msg: "the centralized mixture update's I + 𝒲 𝒥 T 𝒥ᵀ is singular".into(),
-        };
-        let z = lu.solve(&r).ok_or_else(not_invertible)?;
-        let gain = lu.solve(&w_jt).ok_or_else(not_invertible)?;
-        let mut xf = DVectorViewMut::from_slice(&mut self.x_filt, size);
-        xf.copy_from_slice(&self.x_pred);
-        xf.gemv_tr(1.0, &jt, &z, 1.0);
-        let mut pf = DMatrixViewMut::from_slice(&mut self.p_filt, size, size);
-        pf.copy_from(&t_mat);
-        pf.gemm_tr(-1.0, &jt, &gain, 1.0);
-        symmetrize(&mut pf);
+        if !self.update.pseudo_update(
+            &self.x_pred,
+            &self.t_pred,
+            &mut self.x_filt,
+            &mut self.p_filt,
+        ) {
+            return Err(Error::Numerical {
+                t,
+                i: 0,
+                msg: "the centralized mixture update's I + 𝒲 𝒥 T 𝒥ᵀ is singular".into(),
+            });
+        }
         self.log_likelihood = Some(log_likelihood);
         Ok(())
     }

@@ -19,7 +19,7 @@ use faer::{Accum, ColMut, MatMut, MatRef};
 use nalgebra::DMatrix;
 
 use crate::filter::nahi::LN_2PI;
-use crate::linalg::dense::{Cholesky, solve_lower, symmetric_product};
+use crate::linalg::dense::{Cholesky, Lu, solve_lower, symmetric_product};
 
 /// The measurement model of one step and the scratch of the update, sized once for a chain
 /// of `blocks` subsystems of state size `n` and measurement size `q`.
@@ -45,6 +45,9 @@ pub struct LiftedUpdate {
     /// `ỹ` on the received rows, then `e = L⁻¹ ỹ`.
     e: Vec<f64>,
     chol: Cholesky,
+    /// The mixture update's `𝒥 T` (`Nq × Nn`) and LU factor, made at its first step.
+    jt: Vec<f64>,
+    lu: Option<Lu>,
 }
 
 impl LiftedUpdate {
@@ -59,10 +62,12 @@ impl LiftedUpdate {
             innov: vec![0.0; rows],
             received: Vec::with_capacity(rows),
             h_rows: Vec::with_capacity(rows * n),
-            v: Vec::with_capacity(rows * blocks * n),
+            v: Vec::with_capacity(rows * (blocks * n + 1)),
             sigma: Vec::with_capacity(rows * rows),
             e: Vec::with_capacity(rows),
             chol: Cholesky::new(rows),
+            jt: Vec::new(),
+            lu: None,
         }
     }
 
@@ -102,45 +107,20 @@ impl LiftedUpdate {
             p_filt.copy_from_slice(t_pred);
             return Some(0.0);
         }
-        // H T on the received rows.
-        self.h_rows.clear();
-        for &(_, i, k) in &self.received {
-            let h_i = &self.h[i * q * n..(i + 1) * q * n];
-            self.h_rows.extend((0..n).map(|l| h_i[k + l * q]));
-        }
-        // Row (i, k) of H T is Σ_l H_i[k, l] T[i n + l, :] = Σ_l H_i[k, l] T[:, i n + l]ᵀ (T is
-        // symmetric): a sum of T's contiguous columns.
+        // H T on the received rows, and Σ = (H T) Hᵀ + R_eff.
+        gather_rows(&self.received, &self.h, n, q, &mut self.h_rows);
         self.v.clear();
         self.v.resize(rows * size, 0.0);
-        for (a, (&(_, i, _), h_row)) in self
-            .received
-            .iter()
-            .zip(self.h_rows.chunks_exact(n))
-            .enumerate()
-        {
-            for (l, &h) in h_row.iter().enumerate() {
-                let t_col = &t_pred[(i * n + l) * size..(i * n + l + 1) * size];
-                let v_row = self.v[a..].iter_mut().step_by(rows);
-                v_row.zip(t_col).for_each(|(v, t)| *v += h * t);
-            }
-        }
-        // Σ = (H T) Hᵀ + R_eff: column (j, k) takes H_j's row k against H T's block column j.
+        rows_of_product(t_pred, size, &self.received, &self.h_rows, &mut self.v);
+        self.sigma.clear();
         self.sigma.resize(rows * rows, 0.0);
+        times_transposed(&self.v, &self.received, &self.h_rows, n, &mut self.sigma);
         for (b, &(_, j, kb)) in self.received.iter().enumerate() {
-            let col = &mut self.sigma[b * rows..(b + 1) * rows];
-            col.fill(0.0);
-            for l in 0..n {
-                let h = self.h[j * q * n + kb + l * q];
-                if h != 0.0 {
-                    let ht = &self.v[(j * n + l) * rows..(j * n + l + 1) * rows];
-                    col.iter_mut().zip(ht).for_each(|(s, v)| *s += h * v);
-                }
-            }
             // The rows of subsystem j lie within q of row b (the received rows are sorted).
             for a in b.saturating_sub(q)..(b + q).min(rows) {
                 let (_, i, ka) = self.received[a];
                 if i == j {
-                    col[a] += self.r[j * q * q + ka + kb * q];
+                    self.sigma[b * rows + a] += self.r[j * q * q + ka + kb * q];
                 }
             }
         }
@@ -182,6 +162,89 @@ impl LiftedUpdate {
         Some(-0.5 * (rows as f64 * LN_2PI + log_det + norm))
     }
 
+    /// The mixture update (docs/theory.md §10) of the prediction `x̂ = x_pred`, `T = t_pred`
+    /// (symmetric) from every subsystem's pseudo-measurement, filled by [`Self::block_mut`]:
+    /// `J_i` in place of `H_i`, `W_i` (symmetric, possibly indefinite) in place of `R_i` and
+    /// `r_i` in place of `ỹ_i`. With `𝒥 = blkdiag(J_i)` and `𝒲 = blkdiag(W_i)`:
+    ///
+    /// ```text
+    /// G = I + 𝒲 𝒥 T 𝒥ᵀ = Π L U            one LU factor (partial pivoting: G is not symmetric)
+    /// [Z  z] = G⁻¹ [𝒲 𝒥 T  r]              one solve
+    /// x̂(t|t) = x̂ + (𝒥 T)ᵀ z,   P(t|t) = T − (𝒥 T)ᵀ Z
+    /// ```
+    ///
+    /// `(𝒥 T)ᵀ Z = T 𝒥ᵀ 𝒲 (I + 𝒥 T 𝒥ᵀ 𝒲)⁻¹ 𝒥 T` is symmetric: only its lower triangle is
+    /// formed. `false` when `G` is singular.
+    pub fn pseudo_update(
+        &mut self,
+        x_pred: &[f64],
+        t_pred: &[f64],
+        x_filt: &mut [f64],
+        p_filt: &mut [f64],
+    ) -> bool {
+        let (n, q) = (self.n, self.q);
+        let (rows, size) = (self.blocks * q, self.blocks * n);
+        self.received.clear();
+        self.received
+            .extend((0..rows).map(|row| (row, row / q, row % q)));
+        gather_rows(&self.received, &self.h, n, q, &mut self.h_rows);
+        self.jt.clear();
+        self.jt.resize(rows * size, 0.0);
+        rows_of_product(t_pred, size, &self.received, &self.h_rows, &mut self.jt);
+        // [𝒲 𝒥 T  r]: 𝒲's blocks against 𝒥 T's block rows, column by column.
+        self.v.clear();
+        self.v.resize(rows * size, 0.0);
+        for (jt_col, v_col) in self
+            .jt
+            .chunks_exact(rows)
+            .zip(self.v.chunks_exact_mut(rows))
+        {
+            for (i, (w_i, out)) in self
+                .r
+                .chunks_exact(q * q)
+                .zip(v_col.chunks_exact_mut(q))
+                .enumerate()
+            {
+                let x = &jt_col[i * q..(i + 1) * q];
+                for (ka, o) in out.iter_mut().enumerate() {
+                    *o = (0..q).map(|kb| w_i[ka + kb * q] * x[kb]).sum();
+                }
+            }
+        }
+        self.v.extend_from_slice(&self.innov);
+        // G = I + (𝒲 𝒥 T) 𝒥ᵀ.
+        self.sigma.clear();
+        self.sigma.resize(rows * rows, 0.0);
+        times_transposed(&self.v, &self.received, &self.h_rows, n, &mut self.sigma);
+        for k in 0..rows {
+            self.sigma[k * rows + k] += 1.0;
+        }
+        let lu = self.lu.get_or_insert_with(|| Lu::new(rows, size + 1));
+        if !lu.factor_and_solve(
+            MatMut::from_column_major_slice_mut(&mut self.sigma, rows, rows),
+            MatMut::from_column_major_slice_mut(&mut self.v, rows, size + 1),
+        ) {
+            return false;
+        }
+        let (gain, z) = self.v.split_at(rows * size);
+        for ((xf, xp), jt_col) in x_filt
+            .iter_mut()
+            .zip(x_pred)
+            .zip(self.jt.chunks_exact(rows))
+        {
+            *xf = xp + jt_col.iter().zip(z).map(|(a, b)| a * b).sum::<f64>();
+        }
+        p_filt.copy_from_slice(t_pred);
+        symmetric_product(
+            MatMut::from_column_major_slice_mut(p_filt, size, size),
+            Accum::Add,
+            MatRef::from_column_major_slice(&self.jt, rows, size).transpose(),
+            MatRef::from_column_major_slice(gain, rows, size),
+            -1.0,
+        );
+        true
+    }
+
     /// The transposed gain of the last update, `W = Σ⁻¹ H T = L⁻ᵀ V` (`N q × N n`), with
     /// zero rows for the rows not received.
     pub fn gain_transposed(&self) -> DMatrix<f64> {
@@ -200,6 +263,58 @@ impl LiftedUpdate {
             }
         }
         out
+    }
+}
+
+/// The rows `(row, i, k)` of `H = blkdiag(H_i)` (`H_i` `q × n`, column-major, one after
+/// another in `h`): row `k` of `H_i` for each, `n` values, into `out`.
+fn gather_rows(rows: &[(usize, usize, usize)], h: &[f64], n: usize, q: usize, out: &mut Vec<f64>) {
+    out.clear();
+    for &(_, i, k) in rows {
+        let h_i = &h[i * q * n..(i + 1) * q * n];
+        out.extend((0..n).map(|l| h_i[k + l * q]));
+    }
+}
+
+/// `out += H T` on the given rows of `H` (`out` `rows × Nn`, column-major; `h_rows` from
+/// [`gather_rows`]). Row `(i, k)` of `H T` is `Σ_l H_i[k, l] T[i n + l, :]`, which is
+/// `Σ_l H_i[k, l] T[:, i n + l]ᵀ` for a symmetric `T`: a sum of `T`'s contiguous columns.
+fn rows_of_product(
+    t: &[f64],
+    size: usize,
+    rows: &[(usize, usize, usize)],
+    h_rows: &[f64],
+    out: &mut [f64],
+) {
+    let (count, n) = (rows.len(), h_rows.len() / rows.len().max(1));
+    for (a, (&(_, i, _), h_row)) in rows.iter().zip(h_rows.chunks_exact(n)).enumerate() {
+        for (l, &h) in h_row.iter().enumerate() {
+            let t_col = &t[(i * n + l) * size..(i * n + l + 1) * size];
+            let out_row = out[a..].iter_mut().step_by(count);
+            out_row.zip(t_col).for_each(|(o, t)| *o += h * t);
+        }
+    }
+}
+
+/// `out += X Hᵀ` on the given rows of `H` (`X` `rows × Nn` and `out` `rows × rows`,
+/// column-major): column `(j, k)` of `out` takes `H_j`'s row `k` against `X`'s block column
+/// `j`.
+fn times_transposed(
+    x: &[f64],
+    rows: &[(usize, usize, usize)],
+    h_rows: &[f64],
+    n: usize,
+    out: &mut [f64],
+) {
+    let count = rows.len();
+    for (b, (&(_, j, _), h_row)) in rows.iter().zip(h_rows.chunks_exact(n)).enumerate() {
+        let col = &mut out[b * count..(b + 1) * count];
+        for (l, &h) in h_row.iter().enumerate() {
+            if h != 0.0 {
+                let x_col = &x[(j * n + l) * count..(j * n + l + 1) * count];
+                col.iter_mut().zip(x_col).for_each(|(o, x)| *o += h * x);
+            }
+        }
     }
 }
 
@@ -280,6 +395,50 @@ mod tests {
         assert_eq!(w.shape(), (rows, size));
         assert!(w.row(lost).iter().all(|&v| v == 0.0));
         assert!((w.select_rows(&kept) - gain.transpose()).amax() < 1e-12);
+    }
+
+    /// Three subsystems, `n = 3`, `q = 2`, `W_i` indefinite: the pseudo-measurement update
+    /// against the dense formulas (`G = I + 𝒲 𝒥 T 𝒥ᵀ`, `x̂ + (𝒥 T)ᵀ G⁻¹ r`,
+    /// `T − (𝒥 T)ᵀ G⁻¹ 𝒲 𝒥 T`), and a singular `G` refused.
+    #[test]
+    fn pseudo_update_matches_the_dense_mixture_formulas() {
+        let (blocks, n, q) = (3, 3, 2);
+        let (size, rows) = (blocks * n, blocks * q);
+        let f = |k: usize, s: f64| ((k as f64 + 1.0) * s).sin();
+        let a = DMatrix::from_fn(size, size, |r, c| f(r * size + c, 0.7));
+        let t = &a * a.transpose() + DMatrix::identity(size, size);
+        let x = DVector::from_fn(size, |r, _| f(r, 1.3));
+        let r = DVector::from_fn(rows, |r, _| f(r, 2.1));
+        let mut upd = LiftedUpdate::new(blocks, n, q);
+        let (mut j_big, mut w_big) = (DMatrix::zeros(rows, size), DMatrix::zeros(rows, rows));
+        for i in 0..blocks {
+            let j = DMatrix::from_fn(q, n, |r, c| f(i * 11 + r * n + c, 0.9));
+            // Symmetric with eigenvalues of both signs, small enough for a well-conditioned G.
+            let w = DMatrix::from_row_slice(q, q, &[0.8 - i as f64, 0.3, 0.3, -0.5]) * 0.05;
+            j_big.view_mut((i * q, i * n), (q, n)).copy_from(&j);
+            w_big.view_mut((i * q, i * q), (q, q)).copy_from(&w);
+            let (jb, wb, rb) = upd.block_mut(i);
+            jb.copy_from_slice(j.as_slice());
+            wb.copy_from_slice(w.as_slice());
+            rb.copy_from_slice(r.rows(i * q, q).as_slice());
+        }
+        let (mut xf, mut pf) = (vec![0.0; size], vec![0.0; size * size]);
+        assert!(upd.pseudo_update(x.as_slice(), t.as_slice(), &mut xf, &mut pf));
+
+        let jt = &j_big * &t;
+        let k = DMatrix::identity(rows, rows) + &w_big * &jt * j_big.transpose();
+        let k_inv = k.try_inverse().unwrap();
+        let x_expected = &x + jt.transpose() * &k_inv * &r;
+        let p_expected = &t - jt.transpose() * &k_inv * &w_big * &jt;
+        assert!((DVector::from_column_slice(&xf) - x_expected).amax() < 1e-12);
+        assert!((DMatrix::from_column_slice(size, size, &pf) - p_expected).amax() < 1e-12);
+
+        // One scalar subsystem with w = −1 / (j² T): G = 1 + w j² T = 0.
+        let mut upd = LiftedUpdate::new(1, 1, 1);
+        let (jb, wb, rb) = upd.block_mut(0);
+        (jb[0], wb[0], rb[0]) = (2.0, -1.0 / 8.0, 1.0);
+        let (mut xf, mut pf) = ([0.0], [0.0]);
+        assert!(!upd.pseudo_update(&[0.5], &[2.0], &mut xf, &mut pf));
     }
 
     #[test]

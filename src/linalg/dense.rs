@@ -1,11 +1,15 @@
 //! Dense kernels of the lifted (centralized) filter and smoother (docs/theory.md §7) on
-//! column-major matrices: faer's blocked products, triangular solves and Cholesky factor,
+//! column-major matrices: faer's blocked products, triangular solves, Cholesky and LU factors,
 //! each product and solve split by columns over the rayon threads (faer's own parallelism
 //! would bring a scheduler and its dependency tree of its own). Each kernel runs with subnormal
 //! numbers flushed to zero ([`FlushSubnormals`], docs/theory.md §7).
 
-use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch};
+use faer::linalg::lu::partial_pivoting::factor::{lu_in_place, lu_in_place_scratch};
+use faer::linalg::lu::partial_pivoting::solve::{
+    solve_in_place as lu_solve_in_place, solve_in_place_scratch as lu_solve_scratch,
+};
 use faer::linalg::matmul::matmul;
 use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
@@ -194,6 +198,81 @@ impl std::fmt::Debug for Cholesky {
 impl Clone for Cholesky {
     fn clone(&self) -> Self {
         Self::new(self.dim)
+    }
+}
+
+/// The LU factor with partial pivoting `A = Π L U` of a square matrix, in place (`L` unit
+/// lower below the diagonal, `U` on and above it), with its permutation and scratch kept
+/// between calls, and the solves by it.
+pub struct Lu {
+    scratch: MemBuffer,
+    perm: Vec<usize>,
+    perm_inv: Vec<usize>,
+    dim: usize,
+    rhs_cols: usize,
+}
+
+impl Lu {
+    /// Scratch for matrices up to `dim × dim` and right-hand sides of up to `rhs_cols`
+    /// columns.
+    pub fn new(dim: usize, rhs_cols: usize) -> Self {
+        Self {
+            scratch: MemBuffer::new(StackReq::any_of(&[
+                lu_in_place_scratch::<usize, f64>(dim, dim, Par::Seq, Default::default()),
+                lu_solve_scratch::<usize, f64>(dim, rhs_cols, Par::Seq),
+            ])),
+            perm: vec![0; dim],
+            perm_inv: vec![0; dim],
+            dim,
+            rhs_cols,
+        }
+    }
+
+    /// Factors `a` in place and solves `a x = rhs` into `rhs`; `false` (and `rhs` untouched)
+    /// when `a` is singular (a zero on `U`'s diagonal).
+    pub fn factor_and_solve(&mut self, mut a: MatMut<'_, f64>, rhs: MatMut<'_, f64>) -> bool {
+        let dim = a.nrows();
+        assert!(
+            dim <= self.dim && rhs.ncols() <= self.rhs_cols,
+            "LU scratch sized for {} × {} and {} columns",
+            self.dim,
+            self.dim,
+            self.rhs_cols
+        );
+        let _flush = FlushSubnormals::new();
+        let (_, perm) = lu_in_place(
+            a.rb_mut(),
+            &mut self.perm[..dim],
+            &mut self.perm_inv[..dim],
+            Par::Seq,
+            MemStack::new(&mut self.scratch),
+            Default::default(),
+        );
+        let lu = a.as_ref();
+        if (0..dim).any(|k| lu[(k, k)] == 0.0) {
+            return false;
+        }
+        lu_solve_in_place(
+            lu,
+            lu,
+            perm,
+            rhs,
+            Par::Seq,
+            MemStack::new(&mut self.scratch),
+        );
+        true
+    }
+}
+
+impl std::fmt::Debug for Lu {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Lu").field("dim", &self.dim).finish()
+    }
+}
+
+impl Clone for Lu {
+    fn clone(&self) -> Self {
+        Self::new(self.dim, self.rhs_cols)
     }
 }
 
