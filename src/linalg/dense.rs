@@ -12,7 +12,9 @@ use faer::linalg::lu::partial_pivoting::solve::{
 };
 use faer::linalg::matmul::matmul;
 use faer::linalg::matmul::triangular::{self, BlockStructure};
-use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+use faer::linalg::triangular_solve::{
+    solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+};
 use faer::reborrow::ReborrowMut;
 use faer::{Accum, MatMut, MatRef, Par};
 
@@ -60,21 +62,31 @@ fn product_in(
 /// `rhs ← L⁻¹ rhs` for a lower triangular `L` (only its lower triangle is read), on the rayon
 /// threads.
 pub fn solve_lower(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>) {
-    solve_lower_in(l, rhs, rayon::current_num_threads());
+    solve_in(l, rhs, rayon::current_num_threads(), false);
 }
 
-fn solve_lower_in(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>, pieces: usize) {
+/// `rhs ← L⁻ᵀ rhs` for a lower triangular `L` (only its lower triangle is read), on the
+/// rayon threads.
+pub fn solve_lower_transposed(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>) {
+    solve_in(l, rhs, rayon::current_num_threads(), true);
+}
+
+/// `rhs ← L⁻¹ rhs`, or `L⁻ᵀ rhs` when `transposed`, in `pieces` parts of `rhs`'s columns.
+fn solve_in(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>, pieces: usize, transposed: bool) {
     let cols = rhs.ncols();
     if pieces < 2 || cols < 2 * MIN_SPLIT_COLUMNS {
         let _flush = FlushSubnormals::new();
-        solve_lower_triangular_in_place(l, rhs, Par::Seq);
+        match transposed {
+            false => solve_lower_triangular_in_place(l, rhs, Par::Seq),
+            true => solve_upper_triangular_in_place(l.transpose(), rhs, Par::Seq),
+        }
         return;
     }
     let first = pieces / 2;
     let (r1, r2) = rhs.split_at_col_mut(cols * first / pieces);
     rayon::join(
-        || solve_lower_in(l, r1, first),
-        || solve_lower_in(l, r2, pieces - first),
+        || solve_in(l, r1, first, transposed),
+        || solve_in(l, r2, pieces - first, transposed),
     );
 }
 
@@ -318,6 +330,10 @@ mod tests {
         pool.install(|| solve_lower(l.as_ref(), x.as_mut()));
         let l_lower = faer::Mat::from_fn(90, 90, |r, c| if r >= c { l[(r, c)] } else { 0.0 });
         assert!((&l_lower * &x - &b).norm_max() < 1e-12);
+        // And Lᵀ (L⁻ᵀ B) = B.
+        let mut x = b.clone();
+        pool.install(|| solve_lower_transposed(l.as_ref(), x.as_mut()));
+        assert!((l_lower.transpose() * &x - &b).norm_max() < 1e-12);
 
         // The factor of S = M Mᵀ + I reproduces S; an indefinite matrix is refused.
         let m = matrix(40, 40, 0.29);

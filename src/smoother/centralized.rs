@@ -4,8 +4,10 @@
 //! ```text
 //! C_t     = P(t|t) A_eff(t)ᵀ T(t+1)⁻¹                (a Cholesky solve with T(t+1))
 //! x̂(t|T)  = x̂(t|t) + C_t (x̂(t+1|T) − x̂(t+1|t))
-//! P(t|T)  = P(t|t) + C_t (P(t+1|T) − T(t+1)) C_tᵀ     (symmetrised)
+//! P(t|T)  = P(t|t) + C_t (P(t+1|T) − T(t+1)) C_tᵀ     (its lower triangle, mirrored)
 //! ```
+//!
+//! by the dense kernels of [`crate::linalg::dense`] (faer's, on the rayon threads).
 //!
 //! With `Q = 0`, `T(t+1)` can be singular (a state known exactly) or singular to working
 //! precision. When its Cholesky factor fails or its condition estimate exceeds
@@ -14,11 +16,13 @@
 
 use std::sync::Arc;
 
-use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector};
+use faer::{Accum, MatMut, MatRef};
+use nalgebra::{DMatrix, DMatrixView, DVector};
 
 use crate::error::{Error, Result};
 use crate::filter::centralized::CentralizedLimits;
 use crate::filter::{CentralizedFilter, ChainFilter};
+use crate::linalg::dense::{self, Cholesky};
 use crate::model::Model;
 use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
 
@@ -102,14 +106,30 @@ impl Smoother for CentralizedSmoother {
         let mut ps = std::mem::take(&mut self.p_filt);
         let mut mean = MeanPass::new(model);
         let mut gains = Vec::new();
+        let size = big_n * n;
+        let mut factor = DMatrix::zeros(size, size);
+        let mut cholesky = Cholesky::new(size);
+        let mut diff_gain = DMatrix::zeros(size, size);
         for k in (0..steps.saturating_sub(1)).rev() {
             let t_next = &self.t_pred[k];
-            // Cᵀ = T⁻¹ A_eff P.
-            let ap = &*self.a_eff[k] * &ps[k];
-            let gain_tr = match Cholesky::new(t_next.clone()) {
-                Some(chol) if condition(&chol) <= MAX_CONDITION => chol.solve(&ap),
-                _ => pseudo_inverse(t_next, k + 1)? * ap,
-            };
+            // Cᵀ = T⁻¹ A_eff P = L⁻ᵀ L⁻¹ (A_eff P), T = L Lᵀ.
+            let mut gain_tr = DMatrix::zeros(size, size);
+            dense::product(
+                faer_mut(&mut gain_tr),
+                Accum::Replace,
+                faer_ref(&self.a_eff[k]),
+                faer_ref(&ps[k]),
+                1.0,
+            );
+            factor.copy_from(t_next);
+            let factored = cholesky.factor(faer_mut(&mut factor));
+            if factored && condition(factor.diagonal().as_slice()) <= MAX_CONDITION {
+                let l = faer_ref(&factor);
+                dense::solve_lower(l, faer_mut(&mut gain_tr));
+                dense::solve_lower_transposed(l, faer_mut(&mut gain_tr));
+            } else {
+                gain_tr = pseudo_inverse(t_next, k + 1)? * gain_tr;
+            }
             let (xs_head, xs_tail) = xs.split_at_mut(k + 1);
             mean.apply(
                 model,
@@ -120,16 +140,28 @@ impl Smoother for CentralizedSmoother {
                 &xs_tail[0],
                 &mut xs_head[k],
             );
+            // P(t|T) = P(t|t) + C (P(t+1|T) − T) Cᵀ, of which only the lower triangle is
+            // formed (the result is exactly symmetric).
             let diff = &ps[k + 1] - t_next;
-            let mut p = &ps[k] + gain_tr.tr_mul(&(diff * &gain_tr));
-            p = (&p + p.transpose()) * 0.5;
-            ps[k] = p;
+            dense::product(
+                faer_mut(&mut diff_gain),
+                Accum::Replace,
+                faer_ref(&diff),
+                faer_ref(&gain_tr),
+                1.0,
+            );
+            dense::symmetric_product(
+                faer_mut(&mut ps[k]),
+                Accum::Add,
+                faer_ref(&gain_tr).transpose(),
+                faer_ref(&diff_gain),
+                1.0,
+            );
             if keep_gains {
                 gains.push(BackwardGain::Dense(gain_tr));
             }
         }
         gains.reverse();
-        let size = big_n * n;
         let p = ps
             .iter()
             .map(|m| {
@@ -153,10 +185,24 @@ impl Smoother for CentralizedSmoother {
     }
 }
 
-/// `λ_max / λ_min` of `T` from its Cholesky factor's diagonal (an estimate from below).
-fn condition(chol: &Cholesky<f64, nalgebra::Dyn>) -> f64 {
-    let d = chol.l_dirty().diagonal();
-    (d.max() / d.min()).powi(2)
+/// `λ_max / λ_min` of `T` from the diagonal of its Cholesky factor (an estimate from below).
+fn condition(diagonal: &[f64]) -> f64 {
+    let (max, min) = diagonal
+        .iter()
+        .fold((f64::MIN, f64::MAX), |(max, min), &d| {
+            (max.max(d), min.min(d))
+        });
+    (max / min).powi(2)
+}
+
+/// A column-major nalgebra matrix as faer sees it.
+fn faer_ref(m: &DMatrix<f64>) -> MatRef<'_, f64> {
+    MatRef::from_column_major_slice(m.as_slice(), m.nrows(), m.ncols())
+}
+
+fn faer_mut(m: &mut DMatrix<f64>) -> MatMut<'_, f64> {
+    let (rows, cols) = m.shape();
+    MatMut::from_column_major_slice_mut(m.as_mut_slice(), rows, cols)
 }
 
 /// `T⁺`, singular values below `σ_max / MAX_CONDITION` taken as zero (docs/theory.md §9):
