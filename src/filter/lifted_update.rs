@@ -338,16 +338,25 @@ mod tests {
     use super::*;
     use nalgebra::DVector;
 
+    /// A fixed smooth sequence of test values.
+    fn f(k: usize, s: f64) -> f64 {
+        ((k as f64 + 1.0) * s).sin()
+    }
+
+    /// A fixed prior `N(x, T)` of `size` states, `T` symmetric positive definite.
+    fn prior(size: usize) -> (DMatrix<f64>, DVector<f64>) {
+        let a = DMatrix::from_fn(size, size, |r, c| f(r * size + c, 0.7));
+        let t = &a * a.transpose() + DMatrix::identity(size, size);
+        (t, DVector::from_fn(size, |r, _| f(r, 1.3)))
+    }
+
     /// Three subsystems, `n = 3`, `q = 2`, one row of the second lost: the update against the
     /// dense formulas on the received rows (`Σ = H T Hᵀ + R`, `L = T Hᵀ Σ⁻¹`, `P = T − L H T`).
     #[test]
     fn block_update_matches_the_dense_kalman_update_on_the_received_rows() {
         let (blocks, n, q) = (3, 3, 2);
         let (size, rows) = (blocks * n, blocks * q);
-        let f = |k: usize, s: f64| ((k as f64 + 1.0) * s).sin();
-        let a = DMatrix::from_fn(size, size, |r, c| f(r * size + c, 0.7));
-        let t = &a * a.transpose() + DMatrix::identity(size, size);
-        let x = DVector::from_fn(size, |r, _| f(r, 1.3));
+        let (t, x) = prior(size);
         let mut upd = LiftedUpdate::new(blocks, n, q);
         let (mut h_big, mut r_big) = (DMatrix::zeros(rows, size), DMatrix::zeros(rows, rows));
         let y = DVector::from_fn(rows, |r, _| f(r, 2.1));
@@ -404,10 +413,7 @@ mod tests {
     fn pseudo_update_matches_the_dense_mixture_formulas() {
         let (blocks, n, q) = (3, 3, 2);
         let (size, rows) = (blocks * n, blocks * q);
-        let f = |k: usize, s: f64| ((k as f64 + 1.0) * s).sin();
-        let a = DMatrix::from_fn(size, size, |r, c| f(r * size + c, 0.7));
-        let t = &a * a.transpose() + DMatrix::identity(size, size);
-        let x = DVector::from_fn(size, |r, _| f(r, 1.3));
+        let (t, x) = prior(size);
         let r = DVector::from_fn(rows, |r, _| f(r, 2.1));
         let mut upd = LiftedUpdate::new(blocks, n, q);
         let (mut j_big, mut w_big) = (DMatrix::zeros(rows, size), DMatrix::zeros(rows, rows));

@@ -43,19 +43,32 @@ fn product_in(
     alpha: f64,
     pieces: usize,
 ) {
+    by_columns(dst, 0, pieces, &|dst, first| {
+        let rhs = rhs.subcols(first, dst.ncols());
+        matmul(dst, accum, lhs, rhs, alpha, Par::Seq);
+    });
+}
+
+/// `work(part, first)` on `pieces` parts of `dst`'s columns (`first` the part's first column
+/// in `dst`, offset by `offset`), on the rayon threads, with subnormal numbers flushed.
+fn by_columns(
+    dst: MatMut<'_, f64>,
+    offset: usize,
+    pieces: usize,
+    work: &(dyn Fn(MatMut<'_, f64>, usize) + Sync),
+) {
     let cols = dst.ncols();
     if pieces < 2 || cols < 2 * MIN_SPLIT_COLUMNS {
         let _flush = FlushSubnormals::new();
-        matmul(dst, accum, lhs, rhs, alpha, Par::Seq);
+        work(dst, offset);
         return;
     }
     let first = pieces / 2;
     let split = cols * first / pieces;
     let (d1, d2) = dst.split_at_col_mut(split);
-    let (r1, r2) = rhs.split_at_col(split);
     rayon::join(
-        || product_in(d1, accum, lhs, r1, alpha, first),
-        || product_in(d2, accum, lhs, r2, alpha, pieces - first),
+        || by_columns(d1, offset, first, work),
+        || by_columns(d2, offset + split, pieces - first, work),
     );
 }
 
@@ -73,21 +86,10 @@ pub fn solve_lower_transposed(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>) {
 
 /// `rhs ← L⁻¹ rhs`, or `L⁻ᵀ rhs` when `transposed`, in `pieces` parts of `rhs`'s columns.
 fn solve_in(l: MatRef<'_, f64>, rhs: MatMut<'_, f64>, pieces: usize, transposed: bool) {
-    let cols = rhs.ncols();
-    if pieces < 2 || cols < 2 * MIN_SPLIT_COLUMNS {
-        let _flush = FlushSubnormals::new();
-        match transposed {
-            false => solve_lower_triangular_in_place(l, rhs, Par::Seq),
-            true => solve_upper_triangular_in_place(l.transpose(), rhs, Par::Seq),
-        }
-        return;
-    }
-    let first = pieces / 2;
-    let (r1, r2) = rhs.split_at_col_mut(cols * first / pieces);
-    rayon::join(
-        || solve_in(l, r1, first, transposed),
-        || solve_in(l, r2, pieces - first, transposed),
-    );
+    by_columns(rhs, 0, pieces, &|rhs, _| match transposed {
+        false => solve_lower_triangular_in_place(l, rhs, Par::Seq),
+        true => solve_upper_triangular_in_place(l.transpose(), rhs, Par::Seq),
+    });
 }
 
 /// `dst ← α lhs rhs`, or `dst ← dst + α lhs rhs` with `Accum::Add`, for a square `dst`

@@ -109,7 +109,7 @@ impl Smoother for CentralizedSmoother {
         let size = big_n * n;
         let mut factor = DMatrix::zeros(size, size);
         let mut cholesky = Cholesky::new(size);
-        let mut diff_gain = DMatrix::zeros(size, size);
+        let (mut diff, mut diff_gain) = (DMatrix::zeros(size, size), DMatrix::zeros(size, size));
         for k in (0..steps.saturating_sub(1)).rev() {
             let t_next = &self.t_pred[k];
             // Cᵀ = T⁻¹ A_eff P = L⁻ᵀ L⁻¹ (A_eff P), T = L Lᵀ.
@@ -142,7 +142,8 @@ impl Smoother for CentralizedSmoother {
             );
             // P(t|T) = P(t|t) + C (P(t+1|T) − T) Cᵀ, of which only the lower triangle is
             // formed (the result is exactly symmetric).
-            let diff = &ps[k + 1] - t_next;
+            diff.copy_from(&ps[k + 1]);
+            diff -= t_next;
             dense::product(
                 faer_mut(&mut diff_gain),
                 Accum::Replace,
