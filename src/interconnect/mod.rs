@@ -151,6 +151,20 @@ pub(crate) mod test_support {
         let src = ConfigSource::from_text("test.toml", ".".into(), text).unwrap();
         Model::from_config(&src).unwrap()
     }
+
+    /// A chain of `n_sub` two-state subsystems without algebraic interconnection (`G = 0`),
+    /// so that `A_eff` is block tridiagonal.
+    pub fn banded_model(n_sub: usize) -> Model {
+        let text = format!(
+            "subsystems = {n_sub}\nsteps = 10\n[interconnection]\nplus = 1\nminus = 1\n\
+             [model]\nA = [[0.9, 0.1], [-0.2, 0.7]]\nB = [[0.3, 0.0], [0.1, -0.2]]\n\
+             D = [[0.5, 0.4], [-0.3, 0.6]]\nG = [[0.0, 0.0], [0.0, 0.0]]\n\
+             J = [[1.0, 0.0]]\nM = [[1.0]]\n[dropout]\np = 1.0\n\
+             [initial]\ncov = [[1.0, 0.0], [0.0, 1.0]]\n"
+        );
+        let src = ConfigSource::from_text("test.toml", ".".into(), text).unwrap();
+        Model::from_config(&src).unwrap()
+    }
 }
 
 #[cfg(test)]

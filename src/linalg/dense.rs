@@ -111,6 +111,11 @@ pub fn symmetric_product(
         alpha,
         rayon::current_num_threads(),
     );
+    mirror_lower(dst);
+}
+
+/// Copies the strict lower triangle of a square `dst` to its upper one.
+pub fn mirror_lower(mut dst: MatMut<'_, f64>) {
     for c in 0..dst.ncols() {
         for r in c + 1..dst.nrows() {
             dst[(c, r)] = dst[(r, c)];

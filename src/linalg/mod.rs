@@ -6,6 +6,7 @@
 pub mod band;
 pub mod band_lu;
 pub mod dense;
+pub mod envelope;
 pub mod subnormal;
 
 use nalgebra::{DMatrix, Dim, Matrix, SimdRealField, StorageMut, SymmetricEigen};
