@@ -2,6 +2,8 @@
 //! `X⁺ = A_eff X + U_eff U + Ω`, with `A_eff = blkdiag(A) + blkdiag(B) L_x`, where
 //! `V = L_x X + L_u U` is the interconnection solve of docs/theory.md §2.
 
+use std::sync::Arc;
+
 use faer::linalg::matmul::matmul;
 use faer::{Accum, ColMut, ColRef, MatMut, MatRef, Par};
 use nalgebra::{DMatrix, DVector};
@@ -299,21 +301,64 @@ fn ritz_radius(model: &Model, t: usize, solver: &ChainSolver, k: usize) -> Spect
 /// `Ω ~ N(0, Q_big)`. `O((Nn)²)` memory: for reference filters on moderate chains.
 #[derive(Debug, Clone)]
 pub struct LiftedSystem {
-    /// `A_eff = blkdiag(A) + blkdiag(B) L_x`.
-    pub a_eff: DMatrix<f64>,
+    /// `A_eff = blkdiag(A) + blkdiag(B) L_x`, shared with the smoother's stored steps.
+    pub a_eff: Arc<Transition>,
     /// `U_eff = blkdiag(C) + blkdiag(B) L_u`.
     pub u_eff: DMatrix<f64>,
     /// `blkdiag(Q)`.
     pub q_big: DMatrix<f64>,
-    /// `A_eff` by its rows' nonzero stretches, when they are narrow enough for the
-    /// covariance step to take it instead of the dense `A_eff` ([`ENVELOPE_MAX_WIDTH`]).
-    a_rows: Option<RowEnvelope>,
     /// The window these matrices belong to.
     pub window: usize,
     /// A step of that window, and its interconnection solve: `A_eff` applied without the
     /// dense matrix ([`Self::covariance_step`]).
     t: usize,
     solver: ChainSolver,
+}
+
+/// `A_eff(t)` as its products take it: the dense matrix, and its rows' nonzero stretches
+/// when they are narrow enough for the products to take them instead (at most 15 % of a row
+/// on average; docs/theory.md §7).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transition {
+    pub dense: DMatrix<f64>,
+    rows: Option<RowEnvelope>,
+}
+
+impl Transition {
+    fn new(dense: DMatrix<f64>) -> Self {
+        let size = dense.nrows();
+        let rows = RowEnvelope::of(MatRef::from_column_major_slice(
+            dense.as_slice(),
+            size,
+            size,
+        ));
+        let narrow = rows.mean_width() <= ENVELOPE_MAX_WIDTH * size as f64;
+        Self {
+            dense,
+            rows: narrow.then_some(rows),
+        }
+    }
+
+    /// `out = A_eff X` for a symmetric `X` (`Nn × Nn`, column-major): with a narrow row
+    /// envelope, the transpose of `X A_effᵀ` (formed in `scratch`), `O((Nn)² w̄)`; otherwise
+    /// one dense product.
+    pub fn times_symmetric(&self, x: &[f64], out: &mut [f64], scratch: &mut Vec<f64>) {
+        let size = self.dense.nrows();
+        let Some(rows) = &self.rows else {
+            dense::product(
+                MatMut::from_column_major_slice_mut(out, size, size),
+                Accum::Replace,
+                MatRef::from_column_major_slice(self.dense.as_slice(), size, size),
+                MatRef::from_column_major_slice(x, size, size),
+                1.0,
+            );
+            return;
+        };
+        scratch.resize(size * size, 0.0);
+        rows.times_transposed(x, scratch, false, false);
+        MatMut::from_column_major_slice_mut(out, size, size)
+            .copy_from(MatRef::from_column_major_slice(scratch, size, size).transpose());
+    }
 }
 
 /// Scratch of [`LiftedSystem::covariance_step`]: `A_eff X` (`Nn × Nn`), with the row
@@ -326,7 +371,7 @@ pub struct CovarianceScratch {
     chains: Vec<LiftedWorkspace>,
 }
 
-/// The covariance step takes `A_eff` by its rows' nonzero stretches ([`RowEnvelope`]) when
+/// The products by `A_eff` take it by its rows' nonzero stretches ([`RowEnvelope`]) when
 /// they keep on average at most this share of a row: `A_eff X A_effᵀ` then costs two sums of
 /// `w̄` columns per column (`O((Nn)² w̄)`) against the dense products' `O((Nn)³)`, which run
 /// several times faster per operation; one product `X A_effᵀ` on one thread breaks even near
@@ -375,17 +420,10 @@ impl LiftedSystem {
                 .view_mut((i * n, i * n), (n, n))
                 .copy_from(&model.param_set(window.ids[i]).Q);
         }
-        let a_rows = RowEnvelope::of(MatRef::from_column_major_slice(
-            a_eff.as_slice(),
-            big_n * n,
-            big_n * n,
-        ));
-        let narrow = a_rows.mean_width() <= ENVELOPE_MAX_WIDTH * (big_n * n) as f64;
         Ok(Self {
-            a_eff,
+            a_eff: Arc::new(Transition::new(a_eff)),
             u_eff,
             q_big,
-            a_rows: narrow.then_some(a_rows),
             window: model.window_index(t),
             t,
             solver,
@@ -406,16 +444,12 @@ impl LiftedSystem {
         out: &mut [f64],
         scratch: &mut CovarianceScratch,
     ) {
-        let size = self.a_eff.nrows();
-        let a_eff = MatRef::from_column_major_slice(self.a_eff.as_slice(), size, size);
+        let size = self.a_eff.dense.nrows();
+        let a_eff = MatRef::from_column_major_slice(self.a_eff.dense.as_slice(), size, size);
         scratch.a_x.resize(size * size, 0.0);
         let a_x = &mut scratch.a_x;
-        if let Some(rows) = &self.a_rows {
-            // A_eff X = (X A_effᵀ)ᵀ for a symmetric X; then (A_eff X) A_effᵀ, lower triangle.
-            scratch.x_at.resize(size * size, 0.0);
-            rows.times_transposed(x, &mut scratch.x_at, false, false);
-            MatMut::from_column_major_slice_mut(a_x, size, size)
-                .copy_from(MatRef::from_column_major_slice(&scratch.x_at, size, size).transpose());
+        if let Some(rows) = &self.a_eff.rows {
+            self.a_eff.times_symmetric(x, a_x, &mut scratch.x_at);
             out.copy_from_slice(self.q_big.as_slice());
             rows.times_transposed(a_x, out, true, true);
             dense::mirror_lower(MatMut::from_column_major_slice_mut(out, size, size));
@@ -503,7 +537,8 @@ impl LiftedMoments {
 
     /// One step of the moment recursion with inputs `u` (`N·m` values).
     pub fn propagate(&mut self, model: &Model, sys: &LiftedSystem, u: &[f64]) {
-        self.mean_scratch.gemv(1.0, &sys.a_eff, &self.mean, 0.0);
+        self.mean_scratch
+            .gemv(1.0, &sys.a_eff.dense, &self.mean, 0.0);
         let u = nalgebra::DVectorView::from_slice(u, u.len());
         self.mean_scratch.gemv(1.0, &sys.u_eff, &u, 1.0);
         std::mem::swap(&mut self.mean, &mut self.mean_scratch);
@@ -538,8 +573,8 @@ mod tests {
         for (model, narrow) in cases {
             let n_sub = model.subsystems;
             let sys = LiftedSystem::new(&model, 3).unwrap();
-            assert_eq!(sys.a_rows.is_some(), narrow, "N = {n_sub}");
-            let size = sys.a_eff.nrows();
+            assert_eq!(sys.a_eff.rows.is_some(), narrow, "N = {n_sub}");
+            let size = sys.a_eff.dense.nrows();
             let f = DMatrix::from_fn(size, size, |r, c| ((r * 31 + c * 17) as f64 * 0.37).sin());
             let x = &f * f.transpose();
             let q = DMatrix::from_fn(size, size, |r, c| if r == c { 0.5 } else { 0.0 });
@@ -547,7 +582,8 @@ mod tests {
                 q_big: q.clone(),
                 ..sys
             };
-            let expected = &sys.a_eff * &x * sys.a_eff.transpose() + q;
+            let a = &sys.a_eff.dense;
+            let expected = a * &x * a.transpose() + q;
             let mut out = vec![0.0; size * size];
             sys.covariance_step(
                 &model,

@@ -300,7 +300,7 @@ impl ChainFilter for CentralizedFilter {
         {
             let mut xp = nalgebra::DVectorViewMut::from_slice(&mut self.x_pred, size);
             let xf = nalgebra::DVectorView::from_slice(&self.x_filt, size);
-            xp.gemv(1.0, &self.sys.a_eff, &xf, 0.0);
+            xp.gemv(1.0, &self.sys.a_eff.dense, &xf, 0.0);
             let uu = nalgebra::DVectorView::from_slice(u, u.len());
             xp.gemv(1.0, &self.sys.u_eff, &uu, 1.0);
         }
@@ -452,7 +452,7 @@ impl ChainFilter for ScheduledCentralized<'_> {
         xf.gemv_tr(1.0, w, &innov, 1.0);
         let sys = &self.sched.systems[self.sched.system_of_step[k]];
         let mut xp = nalgebra::DVectorViewMut::from_slice(&mut self.x_pred, size);
-        xp.gemv(1.0, &sys.a_eff, &xf, 0.0);
+        xp.gemv(1.0, &sys.a_eff.dense, &xf, 0.0);
         let uu = nalgebra::DVectorView::from_slice(u, u.len());
         xp.gemv(1.0, &sys.u_eff, &uu, 1.0);
         self.t += 1;

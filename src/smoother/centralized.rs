@@ -7,7 +7,9 @@
 //! P(t|T)  = P(t|t) + C_t (P(t+1|T) − T(t+1)) C_tᵀ     (its lower triangle, mirrored)
 //! ```
 //!
-//! by the dense kernels of [`crate::linalg::dense`] (faer's, on the rayon threads).
+//! by the dense kernels of [`crate::linalg::dense`] (faer's, on the rayon threads); `A_eff P(t|t)`
+//! by `A_eff`'s row envelope where it is narrow ([`Transition::times_symmetric`],
+//! docs/theory.md §7).
 //!
 //! With `Q = 0`, `T(t+1)` can be singular (a state known exactly) or singular to working
 //! precision. When its Cholesky factor fails or its condition estimate exceeds
@@ -22,6 +24,7 @@ use nalgebra::{DMatrix, DMatrixView, DVector};
 use crate::error::{Error, Result};
 use crate::filter::centralized::CentralizedLimits;
 use crate::filter::{CentralizedFilter, ChainFilter};
+use crate::lifted::Transition;
 use crate::linalg::dense::{self, Cholesky};
 use crate::model::Model;
 use crate::smoother::{BackwardGain, GainView, MeanPass, Smoothed, Smoother};
@@ -38,7 +41,7 @@ pub struct CentralizedSmoother {
     p_filt: Vec<DMatrix<f64>>,
     t_pred: Vec<DMatrix<f64>>,
     /// `A_eff(t)`, shared between the steps of an override window.
-    a_eff: Vec<Arc<DMatrix<f64>>>,
+    a_eff: Vec<Arc<Transition>>,
 }
 
 impl CentralizedSmoother {
@@ -82,8 +85,8 @@ impl Smoother for CentralizedSmoother {
         ));
         let a_eff = &self.filter.lifted_system().a_eff;
         let shared = match self.a_eff.last() {
-            Some(last) if **last == *a_eff => Arc::clone(last),
-            _ => Arc::new(a_eff.clone()),
+            Some(last) if **last == **a_eff => Arc::clone(last),
+            _ => Arc::clone(a_eff),
         };
         self.a_eff.push(shared);
         Ok(())
@@ -110,16 +113,15 @@ impl Smoother for CentralizedSmoother {
         let mut factor = DMatrix::zeros(size, size);
         let mut cholesky = Cholesky::new(size);
         let (mut diff, mut diff_gain) = (DMatrix::zeros(size, size), DMatrix::zeros(size, size));
+        let mut envelope_scratch = Vec::new();
         for k in (0..steps.saturating_sub(1)).rev() {
             let t_next = &self.t_pred[k];
             // Cᵀ = T⁻¹ A_eff P = L⁻ᵀ L⁻¹ (A_eff P), T = L Lᵀ.
             let mut gain_tr = DMatrix::zeros(size, size);
-            dense::product(
-                faer_mut(&mut gain_tr),
-                Accum::Replace,
-                faer_ref(&self.a_eff[k]),
-                faer_ref(&ps[k]),
-                1.0,
+            self.a_eff[k].times_symmetric(
+                ps[k].as_slice(),
+                gain_tr.as_mut_slice(),
+                &mut envelope_scratch,
             );
             factor.copy_from(t_next);
             let factored = cholesky.factor(faer_mut(&mut factor));

@@ -176,7 +176,7 @@ fn lifted_matrices_equal_dense_construction() {
     for t in [1, 8, 16] {
         let sys = LiftedSystem::new(&model, t).unwrap();
         let (a, b) = dense_lifted(&model, t);
-        assert!((&sys.a_eff - &a).amax() < 1e-13, "A_eff at t = {t}");
+        assert!((&sys.a_eff.dense - &a).amax() < 1e-13, "A_eff at t = {t}");
         assert!((&sys.u_eff - &b).amax() < 1e-13, "U_eff at t = {t}");
     }
 }
