@@ -140,23 +140,7 @@ impl LiftedUpdate {
             l,
             MatMut::from_column_major_slice_mut(&mut self.v, rows, size),
         );
-        let v = MatRef::from_column_major_slice(&self.v, rows, size);
-        for (c, (xf, xp)) in x_filt.iter_mut().zip(x_pred).enumerate() {
-            *xf = xp
-                + self.v[c * rows..(c + 1) * rows]
-                    .iter()
-                    .zip(&self.e)
-                    .map(|(v, e)| v * e)
-                    .sum::<f64>();
-        }
-        p_filt.copy_from_slice(t_pred);
-        symmetric_product(
-            MatMut::from_column_major_slice_mut(p_filt, size, size),
-            Accum::Add,
-            v.transpose(),
-            v,
-            -1.0,
-        );
+        correct(x_pred, t_pred, &self.v, &self.v, &self.e, x_filt, p_filt);
         let log_det = 2.0 * log_product((0..rows).map(|k| l[(k, k)]));
         let norm: f64 = self.e.iter().map(|e| e * e).sum();
         Some(-0.5 * (rows as f64 * LN_2PI + log_det + norm))
@@ -227,21 +211,7 @@ impl LiftedUpdate {
             return false;
         }
         let (gain, z) = self.v.split_at(rows * size);
-        for ((xf, xp), jt_col) in x_filt
-            .iter_mut()
-            .zip(x_pred)
-            .zip(self.jt.chunks_exact(rows))
-        {
-            *xf = xp + jt_col.iter().zip(z).map(|(a, b)| a * b).sum::<f64>();
-        }
-        p_filt.copy_from_slice(t_pred);
-        symmetric_product(
-            MatMut::from_column_major_slice_mut(p_filt, size, size),
-            Accum::Add,
-            MatRef::from_column_major_slice(&self.jt, rows, size).transpose(),
-            MatRef::from_column_major_slice(gain, rows, size),
-            -1.0,
-        );
+        correct(x_pred, t_pred, &self.jt, gain, z, x_filt, p_filt);
         true
     }
 
@@ -264,6 +234,32 @@ impl LiftedUpdate {
         }
         out
     }
+}
+
+/// The corrected moments of both updates: `x̂(t|t) = x̂ + Aᵀ z` and `P(t|t) = T − Aᵀ B` for
+/// `A`, `B` `r × Nn` (column-major) with `Aᵀ B` symmetric, of which only the lower triangle is
+/// formed.
+fn correct(
+    x_pred: &[f64],
+    t_pred: &[f64],
+    a: &[f64],
+    b: &[f64],
+    z: &[f64],
+    x_filt: &mut [f64],
+    p_filt: &mut [f64],
+) {
+    let (rows, size) = (z.len(), x_pred.len());
+    for ((xf, xp), a_col) in x_filt.iter_mut().zip(x_pred).zip(a.chunks_exact(rows)) {
+        *xf = xp + a_col.iter().zip(z).map(|(a, z)| a * z).sum::<f64>();
+    }
+    p_filt.copy_from_slice(t_pred);
+    symmetric_product(
+        MatMut::from_column_major_slice_mut(p_filt, size, size),
+        Accum::Add,
+        MatRef::from_column_major_slice(a, rows, size).transpose(),
+        MatRef::from_column_major_slice(b, rows, size),
+        -1.0,
+    );
 }
 
 /// The rows `(row, i, k)` of `H = blkdiag(H_i)` (`H_i` `q × n`, column-major, one after
