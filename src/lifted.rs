@@ -318,7 +318,7 @@ pub struct LiftedSystem {
 /// `A_eff(t)` as its products take it: the dense matrix, and its rows' nonzero stretches
 /// when they are narrow enough for the products to take them instead (at most 15 % of a row
 /// on average; docs/theory.md §7).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Transition {
     pub dense: DMatrix<f64>,
     rows: Option<RowEnvelope>,
@@ -358,6 +358,26 @@ impl Transition {
         rows.times_transposed(x, scratch, false, false);
         MatMut::from_column_major_slice_mut(out, size, size)
             .copy_from(MatRef::from_column_major_slice(scratch, size, size).transpose());
+    }
+
+    /// `out += Y A_effᵀ` where the sum is known to be symmetric (`Y = A_eff X` for a symmetric
+    /// `X`, `out` symmetric): only the lower triangle is formed, by the row envelope where it
+    /// is narrow, else by one dense product, then mirrored.
+    fn add_symmetric_product(&self, y: &[f64], out: &mut [f64]) {
+        let size = self.dense.nrows();
+        match &self.rows {
+            Some(rows) => {
+                rows.times_transposed(y, out, true, true);
+                dense::mirror_lower(MatMut::from_column_major_slice_mut(out, size, size));
+            }
+            None => dense::symmetric_product(
+                MatMut::from_column_major_slice_mut(out, size, size),
+                Accum::Add,
+                MatRef::from_column_major_slice(y, size, size),
+                MatRef::from_column_major_slice(self.dense.as_slice(), size, size).transpose(),
+                1.0,
+            ),
+        }
     }
 }
 
@@ -445,24 +465,10 @@ impl LiftedSystem {
         scratch: &mut CovarianceScratch,
     ) {
         let size = self.a_eff.dense.nrows();
-        let a_eff = MatRef::from_column_major_slice(self.a_eff.dense.as_slice(), size, size);
         scratch.a_x.resize(size * size, 0.0);
         let a_x = &mut scratch.a_x;
-        if let Some(rows) = &self.a_eff.rows {
+        if self.a_eff.rows.is_some() || size < CHAIN_SOLVE_MIN_STATES {
             self.a_eff.times_symmetric(x, a_x, &mut scratch.x_at);
-            out.copy_from_slice(self.q_big.as_slice());
-            rows.times_transposed(a_x, out, true, true);
-            dense::mirror_lower(MatMut::from_column_major_slice_mut(out, size, size));
-            return;
-        }
-        if size < CHAIN_SOLVE_MIN_STATES {
-            dense::product(
-                MatMut::from_column_major_slice_mut(a_x, size, size),
-                Accum::Replace,
-                a_eff,
-                MatRef::from_column_major_slice(x, size, size),
-                1.0,
-            );
         } else {
             let threads = rayon::current_num_threads();
             scratch
@@ -479,13 +485,7 @@ impl LiftedSystem {
                 });
         }
         out.copy_from_slice(self.q_big.as_slice());
-        dense::symmetric_product(
-            MatMut::from_column_major_slice_mut(out, size, size),
-            Accum::Add,
-            MatRef::from_column_major_slice(a_x, size, size),
-            a_eff.transpose(),
-            1.0,
-        );
+        self.a_eff.add_symmetric_product(a_x, out);
     }
 
     /// Makes `self` the lifted system of time `t`, rebuilding only in a new window.

@@ -18,7 +18,7 @@ const COLUMNS_PER_TASK: usize = 16;
 
 /// The row envelope of a square matrix `A`: row `r`'s entries from column `first[r]` on,
 /// `values[offsets[r]..offsets[r + 1]]` (an empty row has none).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct RowEnvelope {
     size: usize,
     first: Vec<usize>,

@@ -85,7 +85,7 @@ impl Smoother for CentralizedSmoother {
         ));
         let a_eff = &self.filter.lifted_system().a_eff;
         let shared = match self.a_eff.last() {
-            Some(last) if **last == **a_eff => Arc::clone(last),
+            Some(last) if Arc::ptr_eq(last, a_eff) || last.dense == a_eff.dense => Arc::clone(last),
             _ => Arc::clone(a_eff),
         };
         self.a_eff.push(shared);
