@@ -13,6 +13,7 @@ use sisfilt::linalg::band::{
     BandCholesky, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand, completion_precision,
     sandwich,
 };
+use sisfilt::linalg::band_lu::{BandLu, SplitBandLu};
 use std::time::Duration;
 
 const NB: usize = 1000;
@@ -131,9 +132,46 @@ fn bench(c: &mut Criterion<ThreadCpuTime>) {
     group.finish();
 }
 
+/// The step-1 solve of a chain of 10⁴ subsystems with `n⁺ = n⁻ = 1` (docs/theory.md §2):
+/// `kl = ku = 2`, `2 (N − 1)` rows, whole and split at the middle; the split's two blocks
+/// one after the other and side by side on one thread ([`BandLu::solve_each`]). Throughput
+/// in rows.
+fn chain(c: &mut Criterion<ThreadCpuTime>) {
+    let (n, kl, ku) = (2 * (10_000 - 1), 2, 2);
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let mut lu = BandLu::zeros(n, kl, ku);
+    for r in 0..n {
+        for c in r.saturating_sub(kl)..(r + ku + 1).min(n) {
+            let v = if r == c {
+                1.0
+            } else {
+                0.2 * rng.random_range(-1.0..=1.0)
+            };
+            lu.set(r, c, v);
+        }
+    }
+    let split = SplitBandLu::new(&lu, n / 2, 1e8).expect("a well-conditioned split");
+    lu.factor();
+    let mut x: Vec<f64> = (0..n).map(|r| (r as f64).sin()).collect();
+    let mut group = c.benchmark_group("chain_solve");
+    group.throughput(Throughput::Elements(n as u64));
+    group.bench_function("whole", |bch| bch.iter(|| lu.solve(&mut x)));
+    let (x1, x2) = x.split_at_mut(n / 2);
+    group.bench_function("blocks_one_after_the_other", |bch| {
+        bch.iter(|| {
+            split.solve_block(false, x1);
+            split.solve_block(true, x2);
+        })
+    });
+    group.bench_function("blocks_side_by_side", |bch| {
+        bch.iter(|| split.solve_blocks(x1, x2))
+    });
+    group.finish();
+}
+
 criterion_group! {
     name = benches;
     config = cpu_time();
-    targets = bench
+    targets = bench, chain
 }
 criterion_main!(benches);

@@ -176,16 +176,11 @@ impl ChainSolver {
             let (head, rest) = z.split_at(b * s);
             let (shared, tail) = rest.split_at(s);
             let [rhs1, rhs2, seam] = halves.scratch(rhs);
-            rayon::join(
-                || halves.forward_first(head, shared, rhs1),
-                || halves.forward_second(shared, tail, rhs2),
-            );
+            halves.forward_both(head, shared, tail, rhs1, rhs2);
             halves.seam(rhs1, rhs2, seam);
             let (v1, v2) = v.split_at_mut(b * s + p);
-            rayon::join(
-                || halves.finish_first(rhs1, seam, v1),
-                || halves.finish_second(rhs2, seam, v2),
-            );
+            halves.finish_first(rhs1, seam, v1);
+            halves.finish_second(rhs2, seam, v2);
             return;
         }
         let order = links * s;
@@ -240,23 +235,46 @@ impl ChainHalves<'_> {
     /// The first half's right-hand side from `z` of subsystems `0..b` (`head`) and of `b`
     /// (`shared`), and its block solved.
     pub fn forward_first(&self, head: &[f64], shared: &[f64], rhs: &mut [f64]) {
-        with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
-            let (before, last) = rhs.split_at_mut(rhs.len() - s);
-            fill_links(p, s, head, before);
-            fill_link(p, s, &head[head.len() - s..], shared, last);
-        });
+        self.fill_first(head, shared, rhs);
         self.split.solve_block(false, rhs);
     }
 
     /// The second half's right-hand side from `z` of subsystem `b` (`shared`) and of those
     /// after it (`tail`), and its block solved.
     pub fn forward_second(&self, shared: &[f64], tail: &[f64], rhs: &mut [f64]) {
+        self.fill_second(shared, tail, rhs);
+        self.split.solve_block(true, rhs);
+    }
+
+    /// [`ChainHalves::forward_first`] and [`ChainHalves::forward_second`] on this thread,
+    /// the two blocks' sweeps side by side ([`SplitBandLu::solve_blocks`]): the same bits.
+    pub fn forward_both(
+        &self,
+        head: &[f64],
+        shared: &[f64],
+        tail: &[f64],
+        rhs1: &mut [f64],
+        rhs2: &mut [f64],
+    ) {
+        self.fill_first(head, shared, rhs1);
+        self.fill_second(shared, tail, rhs2);
+        self.split.solve_blocks(rhs1, rhs2);
+    }
+
+    fn fill_first(&self, head: &[f64], shared: &[f64], rhs: &mut [f64]) {
+        with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
+            let (before, last) = rhs.split_at_mut(rhs.len() - s);
+            fill_links(p, s, head, before);
+            fill_link(p, s, &head[head.len() - s..], shared, last);
+        });
+    }
+
+    fn fill_second(&self, shared: &[f64], tail: &[f64], rhs: &mut [f64]) {
         with_link_sizes(self.solver.plus, self.solver.minus, |p, s| {
             let (first, after) = rhs.split_at_mut(s);
             fill_link(p, s, shared, &tail[..s], first);
             fill_links(p, s, tail, after);
         });
-        self.split.solve_block(true, rhs);
     }
 
     /// The reduced system at the seam, once both halves are forward-solved.

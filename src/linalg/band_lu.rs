@@ -144,93 +144,36 @@ impl BandLu {
 
     /// Solves `A x = b` in place. Requires a factorised matrix without zero pivot.
     pub fn solve(&self, b: &mut [f64]) {
-        // The bandwidths of the chain systems with n⁺, n⁻ ≤ 2 get a solve that keeps the
-        // band of unknowns in registers.
-        match (self.kl, self.kl + self.ku) {
-            (2, 4) => self.solve_windowed::<2, 4>(b),
-            (1, 1) => self.solve_windowed::<1, 1>(b),
-            (0, 1) => self.solve_windowed::<0, 1>(b),
-            (1, 2) => self.solve_windowed::<1, 2>(b),
-            (4, 7) => self.solve_windowed::<4, 7>(b),
-            (3, 7) => self.solve_windowed::<3, 7>(b),
-            (5, 10) => self.solve_windowed::<5, 10>(b),
-            _ => self.solve_general(b),
-        }
+        Self::solve_each([(self, b)]);
     }
 
-    /// [`BandLu::solve`] for `kl = KL`, `kl + ku = KV`: the rows of `b` still being
-    /// eliminated (forward) and the last solved unknowns (backward, as dot products) are
-    /// held in local arrays, so that no value makes a round trip through memory on the
-    /// dependency chain of the sweeps.
-    fn solve_windowed<const KL: usize, const KV: usize>(&self, b: &mut [f64]) {
-        let n = self.n;
-        if n <= KV + 1 {
-            return self.solve_general(b);
+    /// Solves each `A_k x = b_k` in place ([`BandLu::solve`] of each, bit for bit). Every
+    /// sweep is one chain of dependent multiply-subtracts, bound by their latency, not by
+    /// the core's throughput: systems of the same bandwidths are swept side by side, a row of
+    /// each in turn, so that one core works on `K` chains at once in about the time of one.
+    pub fn solve_each<const K: usize>(systems: [(&BandLu, &mut [f64]); K]) {
+        let Some((first, _)) = systems.first() else {
+            return;
+        };
+        let (kl, kv) = (first.kl, first.kl + first.ku);
+        let windowed = |lu: &BandLu| lu.kl == kl && lu.kl + lu.ku == kv && lu.n > kv + 1;
+        if !systems.iter().all(|(lu, _)| windowed(lu)) {
+            if K == 1 {
+                return systems.into_iter().for_each(|(lu, b)| lu.solve_general(b));
+            }
+            return systems.into_iter().for_each(|(lu, b)| lu.solve(b));
         }
-        let (ld, kv) = (self.ld(), KV);
-        let at = |k: usize| if k < n { b[k] } else { 0.0 };
-        // Forward: L y = P b. `cur` is b[j], `pending[r]` b[j + 1 + r]; multipliers of rows
-        // past the end are zero (never set).
-        let mut cur = b[0];
-        let mut pending = [0.0; KL];
-        for (r, p) in pending.iter_mut().enumerate() {
-            *p = at(1 + r);
-        }
-        for j in 0..n {
-            let l = self.ipiv[j];
-            if l != j {
-                // Rare: swap through memory.
-                b[j] = cur;
-                for (r, &p) in pending.iter().enumerate() {
-                    if j + 1 + r < n {
-                        b[j + 1 + r] = p;
-                    }
-                }
-                b.swap(l, j);
-                cur = b[j];
-                for (r, p) in pending.iter_mut().enumerate() {
-                    *p = if j + 1 + r < n { b[j + 1 + r] } else { 0.0 };
-                }
-            }
-            b[j] = cur;
-            let col = j * ld + kv;
-            let multipliers = &self.ab[col + 1..col + 1 + KL];
-            for (p, m) in pending.iter_mut().zip(multipliers) {
-                *p -= m * cur;
-            }
-            if KL > 0 {
-                // Element by element (not copy_within), so that the array stays in registers.
-                cur = pending[0];
-                for r in 1..KL {
-                    pending[r - 1] = pending[r];
-                }
-                pending[KL - 1] = if j + 1 + KL < n { b[j + 1 + KL] } else { 0.0 };
-            } else if j + 1 < n {
-                cur = b[j + 1];
-            }
-        }
-        // Backward: U x = y, x[j] = (y[j] − Σ U(j, j+r) x[j+r]) / U(j, j); `solved[r]` is
-        // x[j + 1 + r]. U(j, j+r) lives at ab[(j+r)·ld + kv − r].
-        let mut solved = [0.0; KV];
-        for j in (0..n).rev() {
-            let mut acc = b[j];
-            if j + KV < n {
-                for r in (1..=KV).rev() {
-                    acc -= self.ab[(j + r) * ld + kv - r] * solved[r - 1];
-                }
-            } else {
-                for r in (1..=KV).rev() {
-                    if j + r < n {
-                        acc -= self.ab[(j + r) * ld + kv - r] * solved[r - 1];
-                    }
-                }
-            }
-            let x = acc * self.inv_pivot[j];
-            b[j] = x;
-            for r in (1..KV).rev() {
-                solved[r] = solved[r - 1];
-            }
-            solved[0] = x;
+        // The bandwidths of the chain systems with n⁺, n⁻ ≤ 2 get sweeps that keep the
+        // band of unknowns in registers.
+        match (kl, kv) {
+            (2, 4) => solve_windowed::<2, 4, K>(systems),
+            (1, 1) => solve_windowed::<1, 1, K>(systems),
+            (0, 1) => solve_windowed::<0, 1, K>(systems),
+            (1, 2) => solve_windowed::<1, 2, K>(systems),
+            (4, 7) => solve_windowed::<4, 7, K>(systems),
+            (3, 7) => solve_windowed::<3, 7, K>(systems),
+            (5, 10) => solve_windowed::<5, 10, K>(systems),
+            _ => systems.into_iter().for_each(|(lu, b)| lu.solve_general(b)),
         }
     }
 
@@ -340,6 +283,156 @@ impl BandLu {
         self.solve(&mut alt);
         let alt_est = 2.0 * alt.iter().map(|v| v.abs()).sum::<f64>() / (3.0 * n as f64);
         self.norm1 * est.max(alt_est)
+    }
+}
+
+/// [`BandLu::solve_each`] for `kl = KL`, `kl + ku = KV` and every `n > KV + 1`: the rows of
+/// each `b` still being eliminated (forward) and its last solved unknowns (backward, as dot
+/// products) are held in local arrays, so that no value makes a round trip through memory
+/// on the dependency chain of a sweep. Row `j` of every system is swept before row `j + 1`
+/// of any (backward: counted from each system's end).
+fn solve_windowed<const KL: usize, const KV: usize, const K: usize>(
+    systems: [(&BandLu, &mut [f64]); K],
+) {
+    let rows = systems.iter().map(|(lu, _)| lu.n).max().unwrap_or(0);
+    let mut forward = systems.map(|(lu, b)| Forward::<KL, KV>::new(lu, b));
+    for j in 0..rows {
+        for sweep in &mut forward {
+            if j < sweep.n {
+                sweep.row(j);
+            }
+        }
+    }
+    let mut backward = forward.map(Forward::backward);
+    for i in 0..rows {
+        for sweep in &mut backward {
+            if i < sweep.n {
+                sweep.row(sweep.n - 1 - i);
+            }
+        }
+    }
+}
+
+/// The leading dimension of the storage, `2 kl + ku + 1`, for `kl = KL`, `kl + ku = KV`.
+const fn ld<const KL: usize, const KV: usize>() -> usize {
+    KL + KV + 1
+}
+
+/// The forward sweep `L y = P b` of one system: `cur` is `b[j]`, `pending[r]` is
+/// `b[j + 1 + r]`; multipliers of rows past the end are zero (never set). The factors'
+/// slices are held here, not behind the `BandLu`, so that a store to `b` does not make the
+/// loop read them again.
+struct Forward<'a, const KL: usize, const KV: usize> {
+    lu: &'a BandLu,
+    n: usize,
+    ab: &'a [f64],
+    ipiv: &'a [usize],
+    b: &'a mut [f64],
+    cur: f64,
+    pending: [f64; KL],
+}
+
+impl<'a, const KL: usize, const KV: usize> Forward<'a, KL, KV> {
+    fn new(lu: &'a BandLu, b: &'a mut [f64]) -> Self {
+        let n = lu.n;
+        let cur = b[0];
+        let pending = std::array::from_fn(|r| if 1 + r < n { b[1 + r] } else { 0.0 });
+        Self {
+            lu,
+            n,
+            ab: &lu.ab,
+            ipiv: &lu.ipiv,
+            b,
+            cur,
+            pending,
+        }
+    }
+
+    #[inline(always)]
+    fn row(&mut self, j: usize) {
+        let (n, b, pending) = (self.n, &mut *self.b, &mut self.pending);
+        let l = self.ipiv[j];
+        if l != j {
+            // Rare: swap through memory.
+            b[j] = self.cur;
+            for (r, &p) in pending.iter().enumerate() {
+                if j + 1 + r < n {
+                    b[j + 1 + r] = p;
+                }
+            }
+            b.swap(l, j);
+            self.cur = b[j];
+            for (r, p) in pending.iter_mut().enumerate() {
+                *p = if j + 1 + r < n { b[j + 1 + r] } else { 0.0 };
+            }
+        }
+        let cur = self.cur;
+        b[j] = cur;
+        let col = j * ld::<KL, KV>() + KV;
+        let multipliers: &[f64; KL] = self.ab[col + 1..col + 1 + KL].try_into().expect("KL");
+        for (p, m) in pending.iter_mut().zip(multipliers) {
+            *p -= m * cur;
+        }
+        if KL > 0 {
+            // Element by element (not copy_within), so that the array stays in registers.
+            self.cur = pending[0];
+            for r in 1..KL {
+                pending[r - 1] = pending[r];
+            }
+            pending[KL - 1] = if j + 1 + KL < n { b[j + 1 + KL] } else { 0.0 };
+        } else if j + 1 < n {
+            self.cur = b[j + 1];
+        }
+    }
+
+    /// The backward sweep of the same system, once this one has passed every row.
+    fn backward(self) -> Backward<'a, KL, KV> {
+        Backward {
+            n: self.n,
+            ab: self.ab,
+            inv_pivot: &self.lu.inv_pivot,
+            b: self.b,
+            solved: [0.0; KV],
+        }
+    }
+}
+
+/// The backward sweep `U x = y` of one system, `x[j] = (y[j] − Σ U(j, j+r) x[j+r]) /
+/// U(j, j)`: `solved[r]` is `x[j + 1 + r]`; `U(j, j+r)` lives at `ab[(j+r)·ld + kv − r]`.
+struct Backward<'a, const KL: usize, const KV: usize> {
+    n: usize,
+    ab: &'a [f64],
+    inv_pivot: &'a [f64],
+    b: &'a mut [f64],
+    solved: [f64; KV],
+}
+
+impl<const KL: usize, const KV: usize> Backward<'_, KL, KV> {
+    #[inline(always)]
+    fn row(&mut self, j: usize) {
+        let (n, ld, ab, solved) = (self.n, ld::<KL, KV>(), self.ab, &mut self.solved);
+        let mut acc = self.b[j];
+        if j + KV < n {
+            // U(j, j+r) for r = 1..=KV, every (ld − 1)-th value from U(j, j+1) on: one
+            // bounds check for the row.
+            let first = (j + 1) * ld + KV - 1;
+            let u = &ab[first..=first + (KV - 1) * (ld - 1)];
+            for r in (1..=KV).rev() {
+                acc -= u[(r - 1) * (ld - 1)] * solved[r - 1];
+            }
+        } else {
+            for r in (1..=KV).rev() {
+                if j + r < n {
+                    acc -= ab[(j + r) * ld + KV - r] * solved[r - 1];
+                }
+            }
+        }
+        let x = acc * self.inv_pivot[j];
+        self.b[j] = x;
+        for r in (1..KV).rev() {
+            solved[r] = solved[r - 1];
+        }
+        solved[0] = x;
     }
 }
 
@@ -468,6 +561,12 @@ impl SplitBandLu {
         }
     }
 
+    /// [`SplitBandLu::solve_block`] of both blocks on this thread, their sweeps side by
+    /// side ([`BandLu::solve_each`]): the same bits, in about the time of one block.
+    pub fn solve_blocks(&self, b1: &mut [f64], b2: &mut [f64]) {
+        BandLu::solve_each([(&self.first, b1), (&self.second, b2)]);
+    }
+
     /// The reduced system at the seam from both blocks' `g_k`: `seam` (at least `kl + ku`
     /// values) receives `[x₁[m₁−kl..]; x₂[..ku]]`.
     pub fn solve_seam(&self, g1: &[f64], g2: &[f64], seam: &mut [f64]) {
@@ -552,6 +651,40 @@ mod tests {
             for k in 0..n {
                 assert!((x[k] - exact[k]).abs() <= 1e-9 * exact.amax().max(1.0));
                 assert!((xt[k] - exact_t[k]).abs() <= 1e-9 * exact_t.amax().max(1.0));
+            }
+        }
+    }
+
+    /// Two systems swept side by side: each against a dense LU solve, and bit for bit what
+    /// its own solve gives; lengths that differ, pivoting, bandwidths with and without a
+    /// windowed sweep, systems too short for one, and bandwidths that differ.
+    #[test]
+    fn side_by_side_solves_match_dense_lu_and_one_at_a_time() {
+        for [(n1, kl1, ku1), (n2, kl2, ku2)] in [
+            [(50, 2, 2), (31, 2, 2)],
+            [(6, 2, 2), (40, 2, 2)],
+            [(41, 1, 1), (41, 1, 1)],
+            [(30, 4, 3), (45, 4, 3)],
+            [(33, 3, 2), (20, 3, 2)],
+            [(4, 2, 2), (3, 2, 2)],
+            [(30, 2, 2), (30, 1, 2)],
+        ] {
+            let (mut a, dense_a) = random_band(n1, kl1, ku1, 11 + n1 as u64);
+            let (mut b, dense_b) = random_band(n2, kl2, ku2, 12 + n2 as u64);
+            a.factor();
+            b.factor();
+            let rhs = |n: usize| DVector::from_fn(n, |i, _| (0.3 * i as f64 + 0.5).cos());
+            let (rhs_a, rhs_b) = (rhs(n1), rhs(n2));
+            let (mut xa, mut xb) = (rhs_a.as_slice().to_vec(), rhs_b.as_slice().to_vec());
+            BandLu::solve_each([(&a, xa.as_mut_slice()), (&b, xb.as_mut_slice())]);
+            for (lu, dense, rhs, x) in [(&a, dense_a, rhs_a, xa), (&b, dense_b, rhs_b, xb)] {
+                let exact = dense.lu().solve(&rhs).unwrap();
+                let mut alone = rhs.as_slice().to_vec();
+                lu.solve(&mut alone);
+                for k in 0..x.len() {
+                    assert!((x[k] - exact[k]).abs() <= 1e-9 * exact.amax().max(1.0));
+                    assert_eq!(x[k].to_bits(), alone[k].to_bits(), "{n1} {n2} {k}");
+                }
             }
         }
     }
