@@ -158,10 +158,14 @@ impl BandLu {
         let (kl, kv) = (first.kl, first.kl + first.ku);
         let windowed = |lu: &BandLu| lu.kl == kl && lu.kl + lu.ku == kv && lu.n > kv + 1;
         if !systems.iter().all(|(lu, _)| windowed(lu)) {
-            if K == 1 {
-                return systems.into_iter().for_each(|(lu, b)| lu.solve_general(b));
+            // One at a time, each with its own sweeps where it has them.
+            for (lu, b) in systems {
+                match K {
+                    1 => lu.solve_general(b),
+                    _ => lu.solve(b),
+                }
             }
-            return systems.into_iter().for_each(|(lu, b)| lu.solve(b));
+            return;
         }
         // The bandwidths of the chain systems with n⁺, n⁻ ≤ 2 get sweeps that keep the
         // band of unknowns in registers.
@@ -323,10 +327,10 @@ const fn ld<const KL: usize, const KV: usize>() -> usize {
 /// slices are held here, not behind the `BandLu`, so that a store to `b` does not make the
 /// loop read them again.
 struct Forward<'a, const KL: usize, const KV: usize> {
-    lu: &'a BandLu,
     n: usize,
     ab: &'a [f64],
     ipiv: &'a [usize],
+    inv_pivot: &'a [f64],
     b: &'a mut [f64],
     cur: f64,
     pending: [f64; KL],
@@ -338,10 +342,10 @@ impl<'a, const KL: usize, const KV: usize> Forward<'a, KL, KV> {
         let cur = b[0];
         let pending = std::array::from_fn(|r| if 1 + r < n { b[1 + r] } else { 0.0 });
         Self {
-            lu,
             n,
             ab: &lu.ab,
             ipiv: &lu.ipiv,
+            inv_pivot: &lu.inv_pivot,
             b,
             cur,
             pending,
@@ -390,7 +394,7 @@ impl<'a, const KL: usize, const KV: usize> Forward<'a, KL, KV> {
         Backward {
             n: self.n,
             ab: self.ab,
-            inv_pivot: &self.lu.inv_pivot,
+            inv_pivot: self.inv_pivot,
             b: self.b,
             solved: [0.0; KV],
         }
