@@ -501,11 +501,12 @@ def write(results, out_md):
         for name, ns, elems in crit:
             lines.append(f"| {name} | {ns / 1e6:.3f} ms | {fmt_rate(elems / (ns * 1e-9))} elements/s |")
     lines.append("")
-    # Sections measured by hand with criterion and kept beside this script, carried over
-    # verbatim: the joint filter's (issue 10, `cargo bench --bench joint`) and the mixture
-    # update's (issue 25, the `update` and `joint_update` groups), `fit`'s (issue 37,
-    # `bench/fit.py`) and the Python package's (issue 38, `bench/python.py`).
-    for section in ["joint.md", "mixture.md", "fit.md", "python.md"]:
+    # Sections measured by hand and kept beside this script, carried over verbatim: the
+    # centralized filter against statsmodels (issue 43, `bench/centralized.py`), the joint
+    # filter's (issue 10, `cargo bench --bench joint`) and the mixture update's (issue 25,
+    # the `update` and `joint_update` groups), `fit`'s (issue 37, `bench/fit.py`) and the
+    # Python package's (issue 38, `bench/python.py`).
+    for section in ["centralized.md", "joint.md", "mixture.md", "fit.md", "python.md"]:
         path = os.path.join(os.path.dirname(os.path.abspath(__file__)), section)
         if os.path.exists(path):
             with open(path) as f:
