@@ -445,8 +445,9 @@ impl<const KL: usize, const KV: usize> Backward<'_, KL, KV> {
 /// `ku` rows of the first block to the first `ku` unknowns of the second and `F₂` the first
 /// `kl` rows of the second block to the last `kl` unknowns of the first. With the spikes
 /// `V = A₁⁻¹ E₁`, `W = A₂⁻¹ F₂` (computed once) and `g_k = A_k⁻¹ b_k` (the two solves run in
-/// parallel), `x₁ = g₁ − V x₂[..ku]` and `x₂ = g₂ − W x₁[m₁−kl..]`, whose rows at the seam
-/// form a reduced system of order `kl + ku`:
+/// parallel, or side by side on one thread: [`SplitBandLu::solve_blocks`]),
+/// `x₁ = g₁ − V x₂[..ku]` and `x₂ = g₂ − W x₁[m₁−kl..]`, whose rows at the seam form a reduced
+/// system of order `kl + ku`:
 ///
 /// ```text
 /// [ I              V[m₁−kl.., ..] ] [ x₁[m₁−kl..] ]   [ g₁[m₁−kl..] ]
