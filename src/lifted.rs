@@ -14,7 +14,7 @@ use crate::interconnect::ChainSolver;
 use crate::linalg::band::GenBand;
 use crate::linalg::dense;
 use crate::linalg::envelope::RowEnvelope;
-use crate::linalg::{mat_vec_add, mat_vec_add_blocks};
+use crate::linalg::{mat_vec_add, mat_vec_add_blocks, mat_vec_blocks};
 use crate::model::Model;
 
 /// Scratch for [`apply_a_eff`] and [`propagate_mean`].
@@ -59,7 +59,6 @@ pub fn propagate_mean(
     ws: &mut LiftedWorkspace,
 ) {
     let (n, m, s, big_n) = (model.dims.n, model.dims.m, model.dims.s(), model.subsystems);
-    ws.z.clear();
     ws.z.resize(big_n * s, 0.0);
     ws.v.resize(big_n * s, 0.0);
     let window = model.window(t);
@@ -67,17 +66,16 @@ pub fn propagate_mean(
     for (run, id) in window.runs() {
         let p = model.param_set(id);
         let z = &mut ws.z[run.start * s..run.end * s];
-        mat_vec_add_blocks(z, &p.D, &x[run.start * n..run.end * n]);
+        mat_vec_blocks(z, &p.D, &x[run.start * n..run.end * n]);
         if let Some(u) = u {
             mat_vec_add_blocks(z, &p.H, &u[run.start * m..run.end * m]);
         }
     }
     solver.solve(&ws.z, &mut ws.v, &mut ws.rhs);
-    out.fill(0.0);
     for (run, id) in window.runs() {
         let p = model.param_set(id);
         let o = &mut out[run.start * n..run.end * n];
-        mat_vec_add_blocks(o, &p.A, &x[run.start * n..run.end * n]);
+        mat_vec_blocks(o, &p.A, &x[run.start * n..run.end * n]);
         mat_vec_add_blocks(o, &p.B, &ws.v[run.start * s..run.end * s]);
         if let Some(u) = u {
             mat_vec_add_blocks(o, &p.C, &u[run.start * m..run.end * m]);

@@ -38,7 +38,7 @@ use crate::filter::{
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::{add_outer_blocks, mat_vec_add_blocks};
+use crate::linalg::{mat_vec_add_blocks, mat_vec_blocks, moment_blocks};
 use crate::model::{Dims, Model};
 use crate::run::check_update;
 
@@ -233,15 +233,16 @@ fn second_moments<K: LocalKernel>(
         }
         return;
     }
-    if inp.moment_cov.is_empty() {
-        s_run
+    let cov = match inp.moment_cov.is_empty() {
+        true => inp.moment_shared,
+        false => &inp.moment_cov[i * nn..(i + len) * nn],
+    };
+    match inp.second_moment {
+        SecondMoment::Local => moment_blocks(s_run, cov, &inp.moment_mean[i * n..(i + len) * n], n),
+        _ if cov.len() == s_run.len() => s_run.copy_from_slice(cov),
+        _ => s_run
             .chunks_exact_mut(nn)
-            .for_each(|s| s.copy_from_slice(inp.moment_shared));
-    } else {
-        s_run.copy_from_slice(&inp.moment_cov[i * nn..(i + len) * nn]);
-    }
-    if inp.second_moment == SecondMoment::Local {
-        add_outer_blocks(s_run, &inp.moment_mean[i * n..(i + len) * n], n);
+            .for_each(|s| s.copy_from_slice(cov)),
     }
 }
 
@@ -459,9 +460,7 @@ fn update_range<K: LocalKernel>(
         let set = window.ids[start];
         let prm = model.param_set(set);
         let u = &inp.u[start * m..(start + len) * m];
-        let ru = &mut wk.ru[..len * q];
-        ru.fill(0.0);
-        mat_vec_add_blocks(ru, &prm.R, u);
+        mat_vec_blocks(&mut wk.ru[..len * q], &prm.R, u);
         second_moments(inp, wk, start, len);
         let mut j = 0;
         while j < len {
@@ -532,14 +531,13 @@ fn update_range<K: LocalKernel>(
             j += done;
         }
         // Step 1's right-hand side, from the estimate that feeds it (docs/theory.md §4).
-        let z_run = &mut z[k * s..(k + len) * s];
-        z_run.fill(0.0);
         let source = if inp.from_predicted {
             &inp.x_pred[start * n..(start + len) * n]
         } else {
             &x_filt[k * n..(k + len) * n]
         };
-        mat_vec_add_blocks(z_run, &prm.D, source);
+        let z_run = &mut z[k * s..(k + len) * s];
+        mat_vec_blocks(z_run, &prm.D, source);
         mat_vec_add_blocks(z_run, &prm.H, u);
         k += len;
     }
@@ -626,8 +624,7 @@ fn predict_range<K: LocalKernel>(
             &inp.u[start * m..(start + len) * m],
         );
         let xp = &mut x_pred[k * n..(k + len) * n];
-        xp.fill(0.0);
-        mat_vec_add_blocks(xp, &prm.A, &inp.x_filt[start * n..(start + len) * n]);
+        mat_vec_blocks(xp, &prm.A, &inp.x_filt[start * n..(start + len) * n]);
         mat_vec_add_blocks(xp, &prm.B, v);
         mat_vec_add_blocks(xp, &prm.C, u);
         if failed.is_none() {
@@ -640,8 +637,7 @@ fn predict_range<K: LocalKernel>(
             let mean = &mut moment_mean[k * n..(k + len) * n];
             let before = &mut wk.mean[..len * n];
             before.copy_from_slice(mean);
-            mean.fill(0.0);
-            mat_vec_add_blocks(mean, &prm.A, before);
+            mat_vec_blocks(mean, &prm.A, before);
             mat_vec_add_blocks(mean, &prm.B, v);
             mat_vec_add_blocks(mean, &prm.C, u);
         }

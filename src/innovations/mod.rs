@@ -18,7 +18,7 @@ use statrs::distribution::{ChiSquared, ContinuousCDF, Normal, StudentsT};
 use crate::error::{Error, Result};
 use crate::filter::kernel::LANES;
 use crate::filter::{Dropouts, Update};
-use crate::linalg::mat_vec_add_blocks;
+use crate::linalg::mat_vec_blocks;
 use crate::model::Model;
 
 pub use term::{Term, TermKind, TermScorer, TermWorkspace, scorer};
@@ -235,8 +235,7 @@ impl Worker {
                 && !step.y[i * q..(i + LANES) * q].iter().any(|v| v.is_nan())
                 && {
                     let ru = &mut self.ru[..LANES * q];
-                    ru.fill(0.0);
-                    mat_vec_add_blocks(ru, &prm.R, &step.u[i * m..(i + LANES) * m]);
+                    mat_vec_blocks(ru, &prm.R, &step.u[i * m..(i + LANES) * m]);
                     let p = window.p[i..i + LANES].try_into().expect("LANES values");
                     self.scorer.score_lanes(
                         step.kind,

@@ -56,14 +56,31 @@ pub fn mat_vec_add(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
 /// that keeps the loop from running blocks side by side); with a finite `A`, adding their
 /// `±0` products changes no bit of an `out` that holds no `−0`.
 pub fn mat_vec_add_blocks(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
+    mat_vec_blocks_with::<true>(out, a, x);
+}
+
+/// `out_b = A x_b` for every block: [`mat_vec_add_blocks`] on a zeroed `out` (the same bits,
+/// each sum starts from `0`) without a pass to zero it.
+pub fn mat_vec_blocks(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
+    mat_vec_blocks_with::<false>(out, a, x);
+}
+
+/// [`mat_vec_add_blocks`] (`ADD`) or [`mat_vec_blocks`].
+fn mat_vec_blocks_with<const ADD: bool>(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
     macro_rules! fixed {
         ($(($r:literal, $c:literal)),*) => {
             match a.shape() {
-                $(($r, $c) => blocks_fixed::<$r, $c>(out, a, x),)*
+                $(($r, $c) => blocks_fixed::<$r, $c, ADD>(out, a, x),)*
                 (rows, cols) if rows > 0 && cols > 0 => {
                     let blocks = out.chunks_exact_mut(rows).zip(x.chunks_exact(cols));
-                    blocks.for_each(|(out, x)| mat_vec_add(out, a, x));
+                    blocks.for_each(|(out, x)| {
+                        if !ADD {
+                            out.fill(0.0);
+                        }
+                        mat_vec_add(out, a, x)
+                    });
                 }
+                _ if !ADD => out.fill(0.0),
                 _ => {}
             }
         };
@@ -88,44 +105,63 @@ pub fn mat_vec_add_blocks(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
     )
 }
 
-/// [`mat_vec_add_blocks`] for an `R × C` matrix.
-fn blocks_fixed<const R: usize, const C: usize>(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
+/// [`mat_vec_blocks_with`] for an `R × C` matrix.
+fn blocks_fixed<const R: usize, const C: usize, const ADD: bool>(
+    out: &mut [f64],
+    a: &DMatrix<f64>,
+    x: &[f64],
+) {
     let a: [[f64; R]; C] = std::array::from_fn(|c| std::array::from_fn(|r| a[(r, c)]));
     for (out, x) in out.chunks_exact_mut(R).zip(x.chunks_exact(C)) {
+        let mut sum: [f64; R] = if ADD {
+            (*out).try_into().expect("R values")
+        } else {
+            [0.0; R]
+        };
         for (col, &xc) in a.iter().zip(x) {
-            for (o, &arc) in out.iter_mut().zip(col) {
-                *o += arc * xc;
+            for (s, &arc) in sum.iter_mut().zip(col) {
+                *s += arc * xc;
             }
         }
+        out.copy_from_slice(&sum);
     }
 }
 
-/// `S_b += m_b m_bᵀ` for every column-major `n × n` block `S_b` of `s` and `n`-block `m_b`
-/// of `m`; compile-time sizes up to 4.
-pub fn add_outer_blocks(s: &mut [f64], m: &[f64], n: usize) {
-    fn fixed<const N: usize>(s: &mut [f64], m: &[f64]) {
-        for (s, m) in s.chunks_exact_mut(N * N).zip(m.chunks_exact(N)) {
-            for c in 0..N {
-                for r in 0..N {
-                    s[c * N + r] += m[r] * m[c];
+/// `S_b = C_b + m_b m_bᵀ` for every column-major `n × n` block `S_b` of `s`, `C_b` of `cov`
+/// (or the one block `cov` for every `b`, when it holds one block) and `n`-block `m_b` of `m`:
+/// a second moment from a covariance and a mean, each element `C + m_r m_c`, in one pass;
+/// compile-time sizes up to 4.
+pub fn moment_blocks(s: &mut [f64], cov: &[f64], m: &[f64], n: usize) {
+    fn blocks<'a, const N: usize>(
+        s: &mut [f64],
+        cov: impl Iterator<Item = &'a [f64]>,
+        m: &[f64],
+        n: usize,
+    ) {
+        // `N = 0` stands for a size known only at run time.
+        let n = if N == 0 { n } else { N };
+        for ((s, cov), m) in s.chunks_exact_mut(n * n).zip(cov).zip(m.chunks_exact(n)) {
+            for c in 0..n {
+                for r in 0..n {
+                    s[c * n + r] = cov[c * n + r] + m[r] * m[c];
                 }
             }
         }
     }
-    match n {
-        1 => fixed::<1>(s, m),
-        2 => fixed::<2>(s, m),
-        3 => fixed::<3>(s, m),
-        4 => fixed::<4>(s, m),
-        _ => {
-            for (s, m) in s.chunks_exact_mut(n * n).zip(m.chunks_exact(n)) {
-                for c in 0..n {
-                    for r in 0..n {
-                        s[c * n + r] += m[r] * m[c];
-                    }
-                }
-            }
+    fn fixed<const N: usize>(s: &mut [f64], cov: &[f64], m: &[f64], n: usize) {
+        if cov.len() == s.len() {
+            blocks::<N>(s, cov.chunks_exact(n * n), m, n);
+        } else {
+            blocks::<N>(s, std::iter::repeat(cov), m, n);
         }
+    }
+    debug_assert!(cov.len() == n * n || cov.len() == s.len());
+    match n {
+        1 => fixed::<1>(s, cov, m, n),
+        2 => fixed::<2>(s, cov, m, n),
+        3 => fixed::<3>(s, cov, m, n),
+        4 => fixed::<4>(s, cov, m, n),
+        _ => fixed::<0>(s, cov, m, n),
     }
 }
 
@@ -156,6 +192,41 @@ mod tests {
         assert!((&f * f.transpose() - &s).amax() < 1e-14);
     }
 
+    /// Each block is nalgebra's `C + m mᵀ` to the bit (a product and a sum per element), with
+    /// a covariance per block and with one for all, at every compile-time size and past them.
+    #[test]
+    fn moment_blocks_equal_covariance_plus_outer_product() {
+        let blocks = 5;
+        for n in 1..=5 {
+            let nn = n * n;
+            let value = |k: usize, seed: f64| ((k as f64 + seed) * 0.77).sin();
+            let cov: Vec<f64> = (0..blocks * nn).map(|k| value(k, 0.3)).collect();
+            let m: Vec<f64> = (0..blocks * n).map(|k| value(k, 1.9)).collect();
+            for shared in [false, true] {
+                let cov_of = |b: usize| {
+                    if shared {
+                        &cov[..nn]
+                    } else {
+                        &cov[b * nn..(b + 1) * nn]
+                    }
+                };
+                let mut s = vec![f64::NAN; blocks * nn];
+                moment_blocks(&mut s, if shared { &cov[..nn] } else { &cov }, &m, n);
+                for b in 0..blocks {
+                    let mb = nalgebra::DVector::from_column_slice(&m[b * n..(b + 1) * n]);
+                    let want = DMatrix::from_column_slice(n, n, cov_of(b)) + &mb * mb.transpose();
+                    let got = &s[b * nn..(b + 1) * nn];
+                    let bits = |v: &[f64]| v.iter().map(|e| e.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(
+                        bits(got),
+                        bits(want.as_slice()),
+                        "n = {n}, shared {shared}, block {b}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn mat_vec_add_matches_nalgebra() {
         let a = DMatrix::from_row_slice(2, 3, &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
@@ -166,10 +237,16 @@ mod tests {
 
     /// Every shape with a compile-time loop and past them, inputs with zeros of both signs:
     /// each block has the bits of `mat_vec_add` on it (which skips the zeros), and is within
-    /// rounding of nalgebra's product.
+    /// rounding of nalgebra's product; `mat_vec_blocks` on a block of NaNs has the same bits
+    /// (and zeros for a matrix without columns).
     #[test]
     fn mat_vec_add_blocks_equals_mat_vec_add_per_block() {
         let blocks = 7;
+        for rows in 1..=3 {
+            let mut set = vec![f64::NAN; blocks * rows];
+            mat_vec_blocks(&mut set, &DMatrix::zeros(rows, 0), &[]);
+            assert!(set.iter().all(|&v| v.to_bits() == 0), "{rows}×0");
+        }
         for rows in 1..=5 {
             for cols in 1..=5 {
                 let a = DMatrix::from_fn(rows, cols, |r, c| ((r * 7 + c * 3) as f64 * 0.9).sin());
@@ -182,6 +259,8 @@ mod tests {
                     .collect();
                 let mut out = vec![0.0; blocks * rows];
                 mat_vec_add_blocks(&mut out, &a, &x);
+                let mut set = vec![f64::NAN; blocks * rows];
+                mat_vec_blocks(&mut set, &a, &x);
                 for b in 0..blocks {
                     let xb = &x[b * cols..(b + 1) * cols];
                     let mut one = vec![0.0; rows];
@@ -189,6 +268,8 @@ mod tests {
                     let got = &out[b * rows..(b + 1) * rows];
                     let bits = |v: &[f64]| v.iter().map(|e| e.to_bits()).collect::<Vec<_>>();
                     assert_eq!(bits(got), bits(&one), "{rows}×{cols}, block {b}");
+                    let got_set = &set[b * rows..(b + 1) * rows];
+                    assert_eq!(bits(got_set), bits(&one), "set, {rows}×{cols}, block {b}");
                     let exact = &a * nalgebra::DVector::from_column_slice(xb);
                     for (g, e) in got.iter().zip(exact.iter()) {
                         assert!((g - e).abs() <= 1e-14, "{rows}×{cols}, block {b}");
