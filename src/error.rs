@@ -154,6 +154,9 @@ impl Error {
         values: &[f64],
         msg: impl FnOnce() -> String,
     ) -> Result<()> {
+        if crate::linalg::all_finite(values) {
+            return Ok(());
+        }
         match values
             .chunks(width.max(1))
             .position(|block| !block.iter().all(|v| v.is_finite()))

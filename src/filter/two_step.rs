@@ -38,7 +38,7 @@ use crate::filter::{
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::{mat_vec_add_blocks, mat_vec_blocks, moment_blocks};
+use crate::linalg::{all_finite, mat_vec_add_blocks, mat_vec_blocks, moment_blocks};
 use crate::model::{Dims, Model};
 use crate::run::check_update;
 
@@ -627,7 +627,7 @@ fn predict_range<K: LocalKernel>(
         mat_vec_blocks(xp, &prm.A, &inp.x_filt[start * n..(start + len) * n]);
         mat_vec_add_blocks(xp, &prm.B, v);
         mat_vec_add_blocks(xp, &prm.C, u);
-        if failed.is_none() {
+        if failed.is_none() && !(all_finite(xp) && all_finite(&t_pred[own.clone()])) {
             let mut blocks = xp.chunks_exact(n).zip(t_pred[own].chunks_exact(nn));
             failed = blocks
                 .position(|(x, t)| !x.iter().chain(t).all(|v| v.is_finite()))

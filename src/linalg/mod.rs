@@ -49,6 +49,21 @@ pub fn mat_vec_add(out: &mut [f64], a: &DMatrix<f64>, x: &[f64]) {
     }
 }
 
+/// Whether every value is finite: `Σ 0·v` is `±0` when they all are and NaN when one is
+/// infinite or NaN. Eight independent sums and no early exit, so that the loop runs on
+/// vectors: the per-step check that no estimate has overflowed costs a fraction of a pass.
+pub fn all_finite(values: &[f64]) -> bool {
+    let mut sums = [0.0; 8];
+    let mut chunks = values.chunks_exact(8);
+    for chunk in &mut chunks {
+        for (s, &v) in sums.iter_mut().zip(chunk) {
+            *s += 0.0 * v;
+        }
+    }
+    let rest = chunks.remainder().iter().map(|&v| 0.0 * v);
+    sums.into_iter().chain(rest).sum::<f64>() == 0.0
+}
+
 /// `out_b += A x_b` for every block `b` of `out` (`A.nrows()` values each) and of `x`
 /// (`A.ncols()` each): many subsystems' [`mat_vec_add`] with one matrix, each element of
 /// each block given the same operations in the same order; compile-time sizes up to 4 × 4.
@@ -222,6 +237,36 @@ mod tests {
                         bits(want.as_slice()),
                         "n = {n}, shared {shared}, block {b}"
                     );
+                }
+            }
+        }
+    }
+
+    /// Against `iter().all(is_finite)` on every length to 20, with an infinity, a NaN or a
+    /// largest finite value at each place, and zeros of both signs.
+    #[test]
+    fn all_finite_agrees_with_is_finite() {
+        for len in 0..20 {
+            let base: Vec<f64> = (0..len)
+                .map(|k| match k % 3 {
+                    0 => -0.0,
+                    1 => 0.0,
+                    _ => (k as f64).sin() * 1e300,
+                })
+                .collect();
+            assert!(all_finite(&base), "{len}");
+            for at in 0..len {
+                for bad in [
+                    f64::INFINITY,
+                    f64::NEG_INFINITY,
+                    f64::NAN,
+                    f64::MAX,
+                    -f64::MAX,
+                ] {
+                    let mut v = base.clone();
+                    v[at] = bad;
+                    let want = v.iter().all(|x| x.is_finite());
+                    assert_eq!(all_finite(&v), want, "{len}, {bad} at {at}");
                 }
             }
         }
