@@ -154,13 +154,7 @@ impl Error {
         values: &[f64],
         msg: impl FnOnce() -> String,
     ) -> Result<()> {
-        if crate::linalg::all_finite(values) {
-            return Ok(());
-        }
-        match values
-            .chunks(width.max(1))
-            .position(|block| !block.iter().all(|v| v.is_finite()))
-        {
+        match crate::linalg::first_non_finite_block(values, width) {
             None => Ok(()),
             Some(i) => Err(Error::Numerical {
                 t,

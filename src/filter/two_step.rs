@@ -40,7 +40,7 @@ use crate::filter::{
 };
 use crate::interconnect::Interconnect;
 use crate::lifted::{LiftedMoments, LiftedSystem};
-use crate::linalg::{all_finite, mat_vec_add_blocks, mat_vec_blocks, moment_blocks};
+use crate::linalg::{first_non_finite_block, mat_vec_add_blocks, mat_vec_blocks, moment_blocks};
 use crate::model::{Dims, Model};
 use crate::run::check_update;
 
@@ -629,11 +629,10 @@ fn predict_range<K: LocalKernel>(
         mat_vec_blocks(xp, &prm.A, &inp.x_filt[start * n..(start + len) * n]);
         mat_vec_add_blocks(xp, &prm.B, v);
         mat_vec_add_blocks(xp, &prm.C, u);
-        if failed.is_none() && !(all_finite(xp) && all_finite(&t_pred[own.clone()])) {
-            let mut blocks = xp.chunks_exact(n).zip(t_pred[own].chunks_exact(nn));
-            failed = blocks
-                .position(|(x, t)| !x.iter().chain(t).all(|v| v.is_finite()))
-                .map(|j| start + j);
+        if failed.is_none() {
+            let x = first_non_finite_block(xp, n);
+            let t = first_non_finite_block(&t_pred[own], nn);
+            failed = x.into_iter().chain(t).min().map(|j| start + j);
         }
         if !inp.known && inp.second_moment == SecondMoment::Local {
             let mean = &mut moment_mean[k * n..(k + len) * n];

@@ -64,6 +64,18 @@ pub fn all_finite(values: &[f64]) -> bool {
     sums.into_iter().chain(rest).sum::<f64>() == 0.0
 }
 
+/// The first block (0-based) of `width` values that holds a value that is not finite, if any:
+/// one [`all_finite`] pass when every value is finite, the search block by block only
+/// otherwise.
+pub fn first_non_finite_block(values: &[f64], width: usize) -> Option<usize> {
+    if all_finite(values) {
+        return None;
+    }
+    values
+        .chunks(width.max(1))
+        .position(|block| !block.iter().all(|v| v.is_finite()))
+}
+
 /// `out_b += A x_b` for every block `b` of `out` (`A.nrows()` values each) and of `x`
 /// (`A.ncols()` each): many subsystems' [`mat_vec_add`] with one matrix, each element of
 /// each block given the same operations in the same order; compile-time sizes up to 4 × 4.
