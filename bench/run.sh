@@ -2,7 +2,7 @@
 # Reproduces every figure of BENCHMARKS.md (issue 5) and rewrites that file:
 #   - builds sisfilt in release mode; measures the parallel capacity of the machine (two
 #     CPU-bound processes against one) and the filter core without I/O (criterion, one and
-#     two threads);
+#     two threads, from a fresh filter every 20 steps and one filter stepping on);
 #   - generates workload W (bench/workload.toml, N = 10⁴, T = 10³) with `sisfilt simulate`
 #     and runs the whole CLI on it under /usr/bin/time -v, with one thread and with all
 #     cores (RAYON_NUM_THREADS), reporting the read / filter / write split (`--timings`);

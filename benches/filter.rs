@@ -2,7 +2,8 @@
 //! issue 5 (`bench/workload.toml`: n = 2, q = 1, m = 1, n⁺ = n⁻ = 1) with its chain length
 //! and horizon changed per benchmark. Groups:
 //! - `core`: the distributed filter on W (N = 10⁴) with one and with two threads, in
-//!   subsystem-steps per second;
+//!   subsystem-steps per second: `threads` from a fresh filter every 20 steps, `steady` one
+//!   filter stepping on (the measurements of the 20 steps over again);
 //! - `scaling`: N = 10²…10⁵ on one thread, for the linear-scaling fit (time per element flat);
 //! - `sharing`: the shared covariance recursions against per-subsystem ones (`local`, `paper`);
 //! - `centralized_vs_distributed`: time per step for N = 10, 30, 100, 300 (elements = steps);
@@ -79,6 +80,15 @@ fn core(c: &mut Criterion) {
                     },
                     BatchSize::LargeInput,
                 )
+            })
+        });
+        // One filter stepping on, as in a run: its arrays in memory and the pool's threads
+        // awake, which a fresh filter every 20 steps pays for again each time.
+        group.bench_with_input(BenchmarkId::new("steady", threads), &threads, |b, _| {
+            pool.install(|| {
+                let mut f = Fast::with_kernel(&model, TwoStepOptions::default()).unwrap();
+                run(&mut f, &ys, &us);
+                b.iter(|| run(&mut f, &ys, &us))
             })
         });
     }
