@@ -251,12 +251,15 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         inputs_name.as_deref(),
     );
     let out_name = output.name();
-    // Filtered rows reach a waiting reader step by step; smoothed ones only at the end.
-    let live = output.is_live() && spec.output() != EstimateKind::Smoothed;
+    // Filtered rows reach a waiting reader step by step; smoothed ones only at the end, when
+    // the writer has the thread pool to itself.
+    let smoothed = spec.output() == EstimateKind::Smoothed;
+    let live = output.is_live() && !smoothed;
     let writer = EstimatesWriter::new(output, args.format(), spec.columns(model), Some(&metadata))
         .map_err(|e| Error::io(&out_name, e))?
-        .live(live);
-    if spec.output() == EstimateKind::Smoothed && !is_regular_file(&args.data.meas) {
+        .live(live)
+        .parallel(smoothed);
+    if smoothed && !is_regular_file(&args.data.meas) {
         let name = match args.data.meas.as_os_str() == "-" {
             true => "standard input".to_string(),
             false => args.data.meas.display().to_string(),
@@ -289,7 +292,6 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         &mut sink,
     )
     .map_err(in_flag_words)?;
-    let smoothed = spec.output() == EstimateKind::Smoothed;
     let steps = report.steps;
     if !smoothed {
         let elapsed = started.elapsed().as_secs_f64();

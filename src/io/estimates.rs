@@ -304,8 +304,9 @@ const PARALLEL_MIN_ROWS: usize = 4096;
 const CHUNK_ROWS: usize = 1 << 14;
 
 /// Streams the estimates of one time step at a time to CSV or JSON. The rows of a step are
-/// formatted into reused buffers, in parallel chunks on long chains (the bytes do not depend
-/// on the thread count), and written in order.
+/// formatted into reused buffers, on long chains in parallel chunks when asked
+/// ([`EstimatesWriter::parallel`]; the bytes do not depend on the thread count), and written
+/// in order.
 pub struct EstimatesWriter<W: Write = Output> {
     out: W,
     /// The columns written (no cross-covariance blocks in CSV).
@@ -318,6 +319,8 @@ pub struct EstimatesWriter<W: Write = Output> {
     buffers: Vec<(Vec<u8>, Vec<f64>)>,
     /// A reader may be waiting: pass each step on as soon as it is written.
     live: bool,
+    /// Format long steps in parallel chunks on the thread pool.
+    parallel: bool,
 }
 
 impl<W: Write> EstimatesWriter<W> {
@@ -360,6 +363,7 @@ impl<W: Write> EstimatesWriter<W> {
             first: true,
             buffers: Vec::new(),
             live: false,
+            parallel: false,
         })
     }
 
@@ -367,6 +371,16 @@ impl<W: Write> EstimatesWriter<W> {
     /// when `live`: for a reader waiting at a pipe, a named pipe or a terminal.
     pub fn live(mut self, live: bool) -> Self {
         self.live = live;
+        self
+    }
+
+    /// The same writer, formatting the rows of a long step in parallel chunks on the thread
+    /// pool when `parallel`: for estimates written while nothing else runs (smoothed ones,
+    /// after the backward pass). Beside a running filter, which has the pool, the writer
+    /// formats on its own thread: the filter and the innovation check would otherwise wait
+    /// for the pool's threads (8 % of the whole run on 10⁴ subsystems, docs/theory.md §13).
+    pub fn parallel(mut self, parallel: bool) -> Self {
+        self.parallel = parallel;
         self
     }
 
@@ -391,7 +405,7 @@ impl<W: Write> EstimatesWriter<W> {
         let arrival = self.columns.arrival.then_some(values.arrival);
         let nis = self.columns.nis.then_some(values.nis);
         let threads = rayon::current_num_threads();
-        let parallel = rows >= PARALLEL_MIN_ROWS && threads > 1;
+        let parallel = self.parallel && rows >= PARALLEL_MIN_ROWS && threads > 1;
         let (format, first) = (self.format, self.first);
         let values = self.columns.values();
         // t, i (20 digits each), brackets and commas, each value at most 24 characters.
@@ -835,7 +849,9 @@ mod tests {
                     .build()
                     .unwrap();
                 let bytes = pool.install(|| {
-                    let mut w = EstimatesWriter::new(Vec::new(), format, columns(n), None).unwrap();
+                    let mut w = EstimatesWriter::new(Vec::new(), format, columns(n), None)
+                        .unwrap()
+                        .parallel(true);
                     w.write_step(1, &x, &p, None, RowValues::default()).unwrap();
                     w.write_step(2, &x, &p, None, RowValues::default()).unwrap();
                     w.finish(&EstimatesSummary::default()).unwrap()
