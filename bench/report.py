@@ -214,6 +214,55 @@ def against_section(cases, base_cases, env):
     return lines, targets
 
 
+def io_floor_section(cases, base_cases, env):
+    """Reading and writing per row against their floors (`cargo bench --bench io`), and what
+    the floors leave of issue 42's budget, as Markdown lines."""
+    io = {name: ns / elems for name, ns, elems in env.get("io", []) if elems}
+    if not io:
+        return []
+    threads = env["threads"]
+    runs = cases.get(f"W100-{threads}threads", [])
+    base = base_cases.get(f"W100-{threads}threads", [])
+    rows = best(runs, "rows") if runs else math.nan
+    cpu = best_sum(runs, "user", "sys")
+    write, write_floor = io.get("io/write", math.nan), io.get("io/write_floor", math.nan)
+    read, split = io.get("io/read", math.nan), io.get("io/read_split", math.nan)
+    parse = io.get("io/read_floor", math.nan)
+    # W100 writes one row and reads two lines (measurements and inputs) per subsystem-step.
+    floor = rows * (write_floor + 2 * (split + parse)) * 1e-9
+    today = rows * (write + 2 * read) * 1e-9
+    lines = [
+        "",
+        "## Reading and writing against their floors (issue 42)",
+        "",
+        "`cargo bench --bench io` (this tree, one thread, criterion medians): rows of W, 10⁴ a",
+        "step; time per row.",
+        "",
+        "| | per row | what it is |",
+        "|---|---|---|",
+        f"| `io/write` | {write:.0f} ns | the estimates writer: `t,i` and five floats, CSV |",
+        f"| `io/write_floor` | {write_floor:.0f} ns | the five floats formatted by `zmij` alone"
+        " (the shortest text that reads back to the same bits; nothing copied) |",
+        f"| `io/read` | {read:.0f} ns | the measurement reader: a row `t,i,y1` parsed and checked |",
+        f"| `io/read_split` | {split:.0f} ns | the `csv` crate splitting the row into fields |",
+        f"| `io/read_floor` | {parse:.0f} ns | `str::parse::<f64>` of the value alone |",
+        "",
+    ]
+    if base and math.isfinite(rows):
+        budget = best(base, "wall") / 3 * threads
+        lines.append(
+            f"W100 ({rows:.0f} rows, {threads} threads) writes a row and reads two lines (the"
+            f" measurement and the input file) per subsystem-step: {today:.3f} s of CPU at"
+            f" today's rates, {floor:.3f} s at the floors alone. Issue 42's target, 3× the"
+            f" baseline's rows/s, is {best(base, 'wall') / 3:.3f} s of wall clock, at most"
+            f" {budget:.3f} s of CPU on {threads} cores for the whole run, whose best took"
+            f" {cpu:.3f} s (user + sys): the floors of formatting and parsing leave"
+            f" {budget - floor:.3f} s for the filter, the innovation check, the setup, the"
+            " kernel's reads and writes and everything the reader checks and the writer"
+            " arranges beyond the floors.")
+    return lines
+
+
 def med(runs, key):
     values = [r[key] for r in runs if key in r]
     return statistics.median(values) if values else float("nan")
@@ -357,6 +406,7 @@ def write(results, out_md):
     if env.get("against"):
         section, against = against_section(cases, load(results, "baseline"), env)
         lines += section
+        lines += io_floor_section(cases, load(results, "baseline"), env)
 
     lines += [
         "",

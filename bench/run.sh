@@ -10,6 +10,7 @@
 #     fitted exponent), centralized against distributed time per step (N = 10, 30, 100, 300);
 #   - the numpy baseline (bench/baseline.py) against `sisfilt estimate` on a workload it
 #     finishes in about a minute, with both outputs compared number by number;
+#   - reading and writing without the filter against their floors (`cargo bench --bench io`);
 #   - a `perf` profile of the remaining hot spots, when perf is installed.
 # Every case runs BENCH_RUNS times (default 3) and the medians are reported.
 #
@@ -237,6 +238,16 @@ log "workload W, T = 100: simulate"
 data 10000 100 W100
 whole_cli W100
 rm -rf "${WORK:?}/W100"
+# Reading and writing without the filter, and their floors (issue 42): this tree only.
+log "reading and writing: cargo bench --bench io"
+rm -rf "${CARGO_TARGET_DIR:-$ROOT/target}/criterion/io"
+cargo bench --locked --bench io -q -- --warm-up-time 2 --measurement-time 5 >/dev/null 2>&1
+python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "${CARGO_TARGET_DIR:-$ROOT/target}")" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1]))
+env["io"] = [r for r in json.loads(sys.argv[2]) if r[0].startswith("io/")]
+json.dump(env, open(sys.argv[1], "w"))
+EOF
 
 # --- peak memory against T ---------------------------------------------------------------
 for steps in 100 10000; do
