@@ -345,20 +345,24 @@ fn steps_after_the_first_allocate_nothing() {
                 nis: Some(pi.as_slice()),
             };
             for format in [Format::Csv, Format::Json] {
-                let mut writer =
-                    EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();
-                writer.write_step(1, &x, &p, None, pi).unwrap();
-                let mut t = 1;
-                let count = allocations_in(|| {
-                    for _ in 0..2 {
-                        t += 1;
-                        writer.write_step(t, &x, &p, None, pi).unwrap();
-                    }
-                });
-                assert_eq!(
-                    count, 0,
-                    "writer {format:?}, {threads} threads: {count} allocations"
-                );
+                // Formatting on the caller's thread, and in parallel chunks on the pool.
+                for parallel in [false, true] {
+                    let mut writer = EstimatesWriter::new(std::io::sink(), format, columns, None)
+                        .unwrap()
+                        .parallel(parallel);
+                    writer.write_step(1, &x, &p, None, pi).unwrap();
+                    let mut t = 1;
+                    let count = allocations_in(|| {
+                        for _ in 0..2 {
+                            t += 1;
+                            writer.write_step(t, &x, &p, None, pi).unwrap();
+                        }
+                    });
+                    assert_eq!(
+                        count, 0,
+                        "writer {format:?}, parallel {parallel}, {threads} threads: {count} allocations"
+                    );
+                }
                 let writer = EstimatesWriter::new(std::io::sink(), format, columns, None).unwrap();
                 let mut background = BackgroundWriter::new(writer, big_n);
                 // Warm-up: the channels allocate a waker entry the first time each side
