@@ -404,9 +404,10 @@ def write(results, out_md):
     lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
     against = []
     if env.get("against"):
-        section, against = against_section(cases, load(results, "baseline"), env)
+        base_cases = load(results, "baseline")
+        section, against = against_section(cases, base_cases, env)
         lines += section
-        lines += io_floor_section(cases, load(results, "baseline"), env)
+        lines += io_floor_section(cases, base_cases, env)
 
     lines += [
         "",

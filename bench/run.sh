@@ -174,6 +174,18 @@ json.dump(env, open(sys.argv[1], "w"))
 EOF
 }
 
+# The criterion results of this tree whose names start with PREFIX, into env.json under KEY.
+# usage: criterion_into KEY PREFIX
+criterion_into() {
+    python3 - "$WORK/env.json" "$1" "$2" \
+        "$(python3 bench/report.py criterion "${CARGO_TARGET_DIR:-$ROOT/target}")" <<'EOF'
+import json, sys
+env = json.load(open(sys.argv[1]))
+env[sys.argv[2]] = [r for r in json.loads(sys.argv[4]) if r[0].startswith(sys.argv[3])]
+json.dump(env, open(sys.argv[1], "w"))
+EOF
+}
+
 # `estimate` on the data of NAME, to a file, with one thread and with all cores: the cases
 # NAME-1thread and NAME-<cores>threads. usage: whole_cli NAME
 whole_cli() {
@@ -242,12 +254,7 @@ rm -rf "${WORK:?}/W100"
 log "reading and writing: cargo bench --bench io"
 rm -rf "${CARGO_TARGET_DIR:-$ROOT/target}/criterion/io"
 cargo bench --locked --bench io -q -- --warm-up-time 2 --measurement-time 5 >/dev/null 2>&1
-python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "${CARGO_TARGET_DIR:-$ROOT/target}")" <<'EOF'
-import json, sys
-env = json.load(open(sys.argv[1]))
-env["io"] = [r for r in json.loads(sys.argv[2]) if r[0].startswith("io/")]
-json.dump(env, open(sys.argv[1], "w"))
-EOF
+criterion_into io io/
 
 # --- peak memory against T ---------------------------------------------------------------
 for steps in 100 10000; do
@@ -317,11 +324,7 @@ fi
 if [ "${BENCH_CRITERION:-0}" = 1 ]; then
     log "criterion: cargo bench --bench filter"
     cargo bench --locked --bench filter -q >/dev/null 2>&1
-    python3 - "$WORK/env.json" "$(python3 bench/report.py criterion "${CARGO_TARGET_DIR:-$ROOT/target}")" <<'EOF'
-import json, sys
-env = json.load(open(sys.argv[1])); env["criterion"] = json.loads(sys.argv[2])
-json.dump(env, open(sys.argv[1], "w"))
-EOF
+    criterion_into criterion ""
 fi
 
 [ "${BENCH_KEEP:-0}" = 1 ] || rm -rf "${WORK:?}/W"
