@@ -2,7 +2,7 @@
 //! target folder, renamed over the target only when everything was written), so that an error
 //! or an interrupted run never leaves a half-written file and keeps the previous one intact.
 //! The new file is on the disk before it replaces the old one (synced before the rename; a
-//! large file is synced as it grows, so that little is left to wait for at the end).
+//! file is synced as it grows, so that little is left to wait for at the end).
 //! A destination that exists and is not a regular file (`/dev/null`, a named pipe, a terminal)
 //! is written in place: renaming over it would replace the device or pipe with a file. A
 //! symbolic link is written through: the file it points to is replaced, the link stays.
@@ -151,7 +151,9 @@ impl Output {
         }
         Ok(Output::File {
             registration,
-            file: BufWriter::with_capacity(BUFFER, TempOutput::new(tmp)),
+            // A small buffer, so that the file's bytes reach it (and its writeback) as they
+            // come, not all at the end.
+            file: BufWriter::with_capacity(FIRST_WRITEBACK as usize, TempOutput::new(tmp)),
             dest: dest.to_path_buf(),
             target,
         })
@@ -237,23 +239,31 @@ impl Write for Output {
     }
 }
 
-/// How many bytes a temporary output file takes before its pages are sent to the disk.
+/// The bytes a temporary output file takes before its pages are first sent to the disk, and
+/// the write buffer before it: small outputs (a few hundred kilobytes) are mostly on the disk
+/// when the run ends too.
+const FIRST_WRITEBACK: u64 = 64 << 10;
+/// The most bytes between two syncs of a growing file: the interval doubles from
+/// [`FIRST_WRITEBACK`] up to this.
 const WRITEBACK: u64 = 16 << 20;
 
-/// A temporary output file whose pages go to the disk while it is written: every
-/// `WRITEBACK` bytes, a thread of its own syncs what is there so far, so that the sync
-/// before the rename (which makes the new file durable before it replaces the old one) waits
-/// only for the last few megabytes instead of the whole file. The thread mostly waits on the
-/// disk, and is started only once a file is that large.
+/// A temporary output file whose pages go to the disk while it is written: after its first
+/// 64 KiB, then after twice as many bytes since, and so on up to every 16 MiB
+/// (`FIRST_WRITEBACK`, `WRITEBACK`), a thread of its own syncs what is there so far, so that
+/// the sync before the rename (which makes the new file durable before it replaces the old
+/// one) waits only for the last part instead of the whole file. The thread mostly waits on the
+/// disk, and is started only once a file has its first 64 KiB.
 pub struct TempOutput {
     tmp: tempfile::NamedTempFile,
     unsynced: u64,
+    /// The unsynced bytes that call for the next sync.
+    next_writeback: u64,
     writeback: Writeback,
 }
 
 /// The writeback thread of a [`TempOutput`].
 enum Writeback {
-    /// Not needed yet: the file is still under `WRITEBACK` bytes.
+    /// Not needed yet: the file is still under [`FIRST_WRITEBACK`] bytes.
     NotStarted,
     /// Woken by a message to sync; it ends when the sender is dropped.
     Running(SyncSender<()>, JoinHandle<()>),
@@ -266,6 +276,7 @@ impl TempOutput {
         Self {
             tmp,
             unsynced: 0,
+            next_writeback: FIRST_WRITEBACK,
             writeback: Writeback::NotStarted,
         }
     }
@@ -310,8 +321,9 @@ impl Write for TempOutput {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
         let written = self.tmp.write(buf)?;
         self.unsynced += written as u64;
-        if self.unsynced >= WRITEBACK {
+        if self.unsynced >= self.next_writeback {
             self.unsynced = 0;
+            self.next_writeback = (2 * self.next_writeback).min(WRITEBACK);
             self.request_writeback();
         }
         Ok(written)
@@ -501,6 +513,48 @@ mod tests {
         drop(out);
         assert!(std::fs::read(&path).unwrap() == bytes);
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// A file of a few hundred kilobytes starts its writeback at [`FIRST_WRITEBACK`] bytes,
+    /// not before, and asks for the next sync after twice as many bytes each time, up to
+    /// [`WRITEBACK`].
+    #[test]
+    fn small_files_are_written_back_from_the_first_writeback() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.csv");
+        let bytes: Vec<u8> = (0..300_000u32).map(|i| (i % 251) as u8).collect();
+        let temp = |out: &Output| match out {
+            Output::File { file, .. } => (
+                matches!(file.get_ref().writeback, Writeback::Running(..)),
+                file.get_ref().next_writeback,
+            ),
+            _ => panic!("a regular file"),
+        };
+        let mut out = Output::create(&path).unwrap();
+        // The buffer passes on nothing below its size: no writeback yet.
+        out.write_all(&bytes[..FIRST_WRITEBACK as usize - 1])
+            .unwrap();
+        assert_eq!(temp(&out), (false, FIRST_WRITEBACK));
+        out.write_all(&bytes[FIRST_WRITEBACK as usize - 1..])
+            .unwrap();
+        assert!(temp(&out).0);
+        assert!(temp(&out).1 > FIRST_WRITEBACK);
+        out.commit().unwrap();
+        assert!(std::fs::read(&path).unwrap() == bytes);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+
+        // The interval doubles up to WRITEBACK.
+        let tmp = tempfile::NamedTempFile::new_in(dir.path()).unwrap();
+        let mut grown = TempOutput::new(tmp);
+        let mut expected = FIRST_WRITEBACK;
+        let mut at_most = 0;
+        while at_most < 2 {
+            grown.write_all(&vec![0; expected as usize]).unwrap();
+            expected = (2 * expected).min(WRITEBACK);
+            assert_eq!(grown.next_writeback, expected);
+            at_most += usize::from(expected == WRITEBACK);
+        }
+        drop(grown.finish());
     }
 
     /// A symbolic link is written through: its target gets the new bytes and keeps its mode,
