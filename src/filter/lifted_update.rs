@@ -15,7 +15,7 @@
 //! This is `L = T Hᵀ Σ⁻¹`, `P = T − L H T` of docs/theory.md §4 (the gain `L = Vᵀ L⁻¹`,
 //! formed only when asked for: [`LiftedUpdate::gain_transposed`]).
 
-use faer::{Accum, ColMut, MatMut, MatRef};
+use faer::{Accum, MatMut, MatRef};
 use nalgebra::DMatrix;
 
 use crate::filter::nahi::LN_2PI;
@@ -38,12 +38,11 @@ pub struct LiftedUpdate {
     received: Vec<(usize, usize, usize)>,
     /// Those rows of `H`, `n` values each.
     h_rows: Vec<f64>,
-    /// `H T` on the received rows (`r × Nn`), then `V = L⁻¹ H T`.
+    /// `[H T  ỹ]` on the received rows (`r × (Nn + 1)`), then `[V  e] = L⁻¹ [H T  ỹ]`; the
+    /// mixture update's `[𝒲 𝒥 T  r]`, then its solution.
     v: Vec<f64>,
     /// `Σ` on the received rows (`r × r`), then its factor `L` in its lower triangle.
     sigma: Vec<f64>,
-    /// `ỹ` on the received rows, then `e = L⁻¹ ỹ`.
-    e: Vec<f64>,
     chol: Cholesky,
     /// The mixture update's `𝒥 T` (`Nq × Nn`) and LU factor, made at its first step.
     jt: Vec<f64>,
@@ -64,7 +63,6 @@ impl LiftedUpdate {
             h_rows: Vec::with_capacity(rows * n),
             v: Vec::with_capacity(rows * (blocks * n + 1)),
             sigma: Vec::with_capacity(rows * rows),
-            e: Vec::with_capacity(rows),
             chol: Cholesky::new(rows),
             jt: Vec::new(),
             lu: None,
@@ -132,17 +130,17 @@ impl LiftedUpdate {
             return None;
         }
         let l = MatRef::from_column_major_slice(&self.sigma, rows, rows);
-        self.e.clear();
-        self.e
+        // [V  e] = L⁻¹ [H T  ỹ] in one solve.
+        self.v
             .extend(self.received.iter().map(|&(row, _, _)| self.innov[row]));
-        solve_lower(l, ColMut::from_slice_mut(&mut self.e).as_mat_mut());
         solve_lower(
             l,
-            MatMut::from_column_major_slice_mut(&mut self.v, rows, size),
+            MatMut::from_column_major_slice_mut(&mut self.v, rows, size + 1),
         );
-        correct(x_pred, t_pred, &self.v, &self.v, &self.e, x_filt, p_filt);
+        let (v, e) = self.v.split_at(rows * size);
+        correct(x_pred, t_pred, v, v, e, x_filt, p_filt);
         let log_det = 2.0 * log_product((0..rows).map(|k| l[(k, k)]));
-        let norm: f64 = self.e.iter().map(|e| e * e).sum();
+        let norm: f64 = e.iter().map(|e| e * e).sum();
         Some(-0.5 * (rows as f64 * LN_2PI + log_det + norm))
     }
 
