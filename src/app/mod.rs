@@ -123,12 +123,16 @@ pub enum Command {
 
 /// Runs one command.
 pub fn run(command: Command) -> Result<()> {
+    // This thread is the first worker of rayon's pool: the parallel loops of every step
+    // (filter, writer, readers) start from inside the pool instead of waking it from outside
+    // each time, and the pool starts one thread fewer (no hand-over of the command to another).
+    let _ = rayon::ThreadPoolBuilder::new()
+        .use_current_thread()
+        .build_global();
     match command {
         Command::Check { config, set } => check::run(&config, &set.set),
         Command::Simulate(args) => simulate::run(&args),
-        // On a worker of rayon's pool, so that the parallel loops of every step (filter,
-        // writer, readers) start without waking the pool from outside each time.
-        Command::Estimate(args) => rayon::scope(|_| estimate::run(&args)),
+        Command::Estimate(args) => estimate::run(&args),
         Command::Fit(args) => fit::run(&args),
         Command::Evaluate(args) => evaluate::run(&args),
         Command::EvaluateMerge(args) => evaluate::merge(&args),
