@@ -123,23 +123,28 @@ pub enum Command {
 
 /// Runs one command.
 pub fn run(command: Command) -> Result<()> {
-    // This thread is the first worker of rayon's pool: the parallel loops of every step
-    // (filter, writer, readers) start from inside the pool instead of waking it from outside
-    // each time, and the pool starts one thread fewer (no hand-over of the command to another).
-    let _ = rayon::ThreadPoolBuilder::new()
-        .use_current_thread()
-        .build_global();
     match command {
         Command::Check { config, set } => check::run(&config, &set.set),
         Command::Simulate(args) => simulate::run(&args),
-        Command::Estimate(args) => estimate::run(&args),
-        Command::Fit(args) => fit::run(&args),
-        Command::Evaluate(args) => evaluate::run(&args),
+        Command::Estimate(args) => on_pool(|| estimate::run(&args)),
+        Command::Fit(args) => on_pool(|| fit::run(&args)),
+        Command::Evaluate(args) => on_pool(|| evaluate::run(&args)),
         Command::EvaluateMerge(args) => evaluate::merge(&args),
         Command::Plot(command) => plot::run(command),
         Command::Completions { shell } => completions::run(shell),
         Command::Man { command } => man::run(&command),
     }
+}
+
+/// Runs a command that filters (in parallel loops) with this thread as the first worker of
+/// rayon's pool: the loops start from inside the pool instead of waking it from outside each
+/// time, and the pool starts one thread fewer (no hand-over of the command to another).
+fn on_pool(command: impl FnOnce() -> Result<()>) -> Result<()> {
+    // Refused only once the pool exists, which a command's first loop would have made.
+    let _ = rayon::ThreadPoolBuilder::new()
+        .use_current_thread()
+        .build_global();
+    command()
 }
 
 /// Writes `text` to standard output; a closed pipe comes back as an [`Error::Io`] of kind
