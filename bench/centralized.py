@@ -11,8 +11,8 @@ the lifted chain built here from the config's matrices (`A_eff` block tridiagona
 `G = 0`; lost elements NaN, which statsmodels leaves out as the known-dropout filter does).
 Time: the whole `sisfilt` process (read, filter, write to a file) against statsmodels' filter
 alone (its BLAS on the default threads, only the filtered means and covariances stored), best
-of `--runs` alternating runs. The filtered means and the diagonal blocks of the filtered
-covariances are compared element by element. `--baseline` names another sisfilt binary timed
+of `--runs` alternating runs, each after the same pause. The filtered means and the diagonal
+blocks of the filtered covariances are compared element by element. `--baseline` names another sisfilt binary timed
 alongside (a ratio against an earlier commit).
 
 Needs `target/release/sisfilt` (`cargo build --release`; SISFILT names another binary), numpy
@@ -35,8 +35,10 @@ SISFILT = os.environ.get("SISFILT", os.path.join(ROOT, "target", "release", "sis
 CONFIG = os.path.join(ROOT, "configs", "platoon.toml")
 
 
-# Seconds to wait before timing sisfilt: statsmodels' BLAS threads spin on both cores for a
-# while after its filter, and would slow the process timed next.
+# Seconds to wait before each timed run: statsmodels' BLAS threads spin on both cores for a
+# while after its filter, and would slow the process timed next; and each run, sisfilt's or
+# statsmodels', starts from the same quiet machine (after a pause, starting threads and waking
+# the other core take longer on a virtual machine).
 QUIET = 0.3
 
 
@@ -89,6 +91,7 @@ def lifted_kalman_filter(n_sub, meas, inputs):
                         np.kron(np.eye(n_sub), np.array(cfg["initial"]["cov"], float)))
     kf.set_conserve_memory(MEMORY_NO_FORECAST | MEMORY_NO_PREDICTED | MEMORY_NO_GAIN
                            | MEMORY_NO_SMOOTHING | MEMORY_NO_STD_FORECAST)
+    time.sleep(QUIET)
     start = time.perf_counter()
     res = kf.filter()
     return res, time.perf_counter() - start
