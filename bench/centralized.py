@@ -137,7 +137,7 @@ def main():
         f"{statsmodels.__version__}, numpy {np.__version__}). The platoon, T = {args.steps}, "
         "simulated with `--mark-missing`, `estimate --filter centralized --dropouts known`: "
         "the whole `sisfilt` process against statsmodels' `KalmanFilter.filter()` alone, best "
-        f"of {args.runs} alternating runs.",
+        f"of {args.runs} alternating runs, each after a pause of {QUIET} s.",
         "",
         head + " largest difference of x̂(t|t) | of P(t|t)'s blocks |",
         rule + "---|---|",
