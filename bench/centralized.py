@@ -12,8 +12,8 @@ the lifted chain built here from the config's matrices (`A_eff` block tridiagona
 Time: the whole `sisfilt` process (read, filter, write to a file) against statsmodels' filter
 alone (its BLAS on the default threads, only the filtered means and covariances stored), best
 of `--runs` alternating runs, each after the same pause. The filtered means and the diagonal
-blocks of the filtered covariances are compared element by element. `--baseline` names another sisfilt binary timed
-alongside (a ratio against an earlier commit).
+blocks of the filtered covariances are compared element by element. `--baseline` names another
+sisfilt binary timed alongside (a ratio against an earlier commit).
 
 Needs `target/release/sisfilt` (`cargo build --release`; SISFILT names another binary), numpy
 and statsmodels (`pip install numpy statsmodels`).
