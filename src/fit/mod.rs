@@ -26,6 +26,7 @@ use rayon::prelude::*;
 use crate::config::RawConfig;
 use crate::error::{Error, Result};
 use crate::filter::{Dropouts, FilterKind, Update};
+use crate::innovations::Fitted;
 use crate::model::Model;
 use crate::run::{self, CheckedSpec, RunSpec, SpecError};
 
@@ -311,7 +312,14 @@ pub fn fit(
     let fitted = objective
         .model_at(&theta)
         .ok_or_else(|| Error::Usage("fit: the fitted model is not valid".into()))?;
-    let innovations = run::innovation_report(&fitted, &spec.run, y, u)?;
+    // What the fit estimated is not what its check may blame (docs/theory.md §14).
+    let estimated = Fitted {
+        p: spec.params.contains(&ParamGroup::P),
+        q: spec.params.contains(&ParamGroup::Q),
+        m: spec.params.contains(&ParamGroup::M),
+    };
+    let innovations =
+        run::innovation_report(&fitted, &spec.run, y, u)?.map(|r| r.after_fit(estimated));
     Ok(Fit {
         report: FitReport {
             parameters: fitted_params,

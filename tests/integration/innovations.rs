@@ -68,40 +68,40 @@ fn dense_reference(
 }
 
 /// The Ljung–Box statistic of one series with gaps over lags `1..=h` (docs/theory.md §14),
-/// and `√n₁ (ρ₁ + 1/T_r)`.
-fn ljung_box(series: &[f64], h: usize) -> (f64, f64) {
+/// and per lag `k` the lag sums `a_k = Σ (ε_t − ē)(ε_{t−k} − ē) + n_k c₀ / T_r`,
+/// `b_k = Σ ε_t² ε_{t−k}²` and `n_k c₀`.
+fn ljung_box(series: &[f64], h: usize) -> (f64, Vec<[f64; 3]>) {
     let present: Vec<f64> = series.iter().copied().filter(|v| !v.is_nan()).collect();
     let tr = present.len() as f64;
     let mean = present.iter().sum::<f64>() / tr;
     let c0 = present.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / tr;
     let mut q = 0.0;
-    let mut z = 0.0;
+    let mut sums = Vec::new();
     for k in 1..=h {
         let pairs: Vec<(f64, f64)> = (0..series.len() - k)
             .map(|t| (series[t], series[t + k]))
             .filter(|(a, b)| !a.is_nan() && !b.is_nan())
             .collect();
         let nk = pairs.len() as f64;
-        let ck = pairs
+        let centred = pairs
             .iter()
             .map(|(a, b)| (a - mean) * (b - mean))
-            .sum::<f64>()
-            / nk;
-        let rho = ck / c0;
+            .sum::<f64>();
+        let rho = centred / nk / c0;
         q += nk * (tr + 2.0) / tr * rho * rho;
-        if k == 1 {
-            z = nk.sqrt() * (rho + 1.0 / tr);
-        }
+        let fourth = pairs.iter().map(|(a, b)| a * a * b * b).sum::<f64>();
+        sums.push([centred + nk * c0 / tr, fourth, nk * c0]);
     }
-    (q, z)
+    (q, sums)
 }
 
 fn close(a: f64, b: f64, tol: f64) -> bool {
     (a - b).abs() <= tol * a.abs().max(b.abs()).max(1.0)
 }
 
-/// With known dropouts the NIS of every `(t, i)`, the average NIS, the Ljung–Box statistic
-/// and `z₁` of the exact filters (centralized; joint at full band) equal those of a dense
+/// With known dropouts the NIS of every `(t, i)`, the average NIS, the Ljung–Box statistic,
+/// the pooled lag sums (`z₁`, `z_w`, `ρ_w`, each lag's `z_k` and `Q_acf`) and the gaps of the
+/// exact filters (centralized; joint at full band) equal those of a dense
 /// Kalman filter written here, on the four-subsystem chain with two measured elements each,
 /// a parameter override, inputs, and elements lost alone, in pairs and not at all.
 #[test]
@@ -126,13 +126,23 @@ fn known_dropout_figures_equal_a_dense_kalman_filter() {
     let (nis, series) = dense_reference(&model, &y, &run.u);
     let steps = y.len();
     let h = (steps / 5).min(10);
-    let (mut lb, mut z) = (0.0, 0.0);
+    let mut lb = 0.0;
+    let mut pooled = vec![[0.0; 3]; h];
     for s in &series {
-        let (a, b) = ljung_box(s, h);
-        lb += a;
-        z += b;
+        let (q, sums) = ljung_box(s, h);
+        lb += q;
+        for (total, sum) in pooled.iter_mut().zip(sums) {
+            (0..3).for_each(|c| total[c] += sum[c]);
+        }
     }
-    let z1 = z / (series.len() as f64).sqrt();
+    // z_k = A_k/√B_k, z_w with Bartlett weights w_k = 1 − (k−1)/h, ρ_w, Q_acf = Σ z_k².
+    let lag_z: Vec<f64> = pooled.iter().map(|[a, b, _]| a / b.sqrt()).collect();
+    let w = |k: usize| 1.0 - k as f64 / h as f64;
+    let weighted =
+        |c: usize, power: i32| -> f64 { (0..h).map(|k| w(k).powi(power) * pooled[k][c]).sum() };
+    let z_w = weighted(0, 1) / weighted(1, 2).sqrt();
+    let rho_w = weighted(0, 1) / weighted(2, 1);
+    let q_acf: f64 = lag_z.iter().map(|z| z * z).sum();
     let received = y.iter().flatten().filter(|v| !v.is_nan()).count() as f64;
     let average = nis.iter().filter(|v| !v.is_nan()).sum::<f64>() / received;
     let flat_y: Vec<f64> = y.concat();
@@ -175,7 +185,23 @@ fn known_dropout_figures_equal_a_dense_kalman_filter() {
             "{filter:?}: {} against {lb}",
             lbox.statistic
         );
-        assert!(close(report.z1.unwrap(), z1, tol), "{filter:?}");
+        assert!(close(report.z1.unwrap(), lag_z[0], tol), "{filter:?}");
+        assert!(close(report.z_w.unwrap(), z_w, tol), "{filter:?}");
+        assert!(close(report.rho_w.unwrap(), rho_w, tol), "{filter:?}");
+        let portmanteau = report.portmanteau.as_ref().unwrap();
+        assert_eq!(portmanteau.dof, h);
+        assert!(close(portmanteau.statistic, q_acf, tol), "{filter:?}");
+        for (got, want) in portmanteau.lag_z.iter().zip(&lag_z) {
+            assert!(
+                close(*got, *want, tol),
+                "{filter:?}: z_k {got} against {want}"
+            );
+        }
+        assert_eq!(
+            report.spatial_factor, None,
+            "four subsystems: no spatial guard"
+        );
+        assert_eq!(report.gaps, (steps * big_n * q) as u64 - received as u64);
         assert!(
             report.received_share.is_none(),
             "p plays no part with known dropouts"
@@ -491,7 +517,9 @@ fn the_command_line_reports_the_check_and_the_nis_column() {
             "band",
             "band_basis",
             "z1",
-            "z_lags",
+            "z_w",
+            "rho_w",
+            "portmanteau",
             "worst_subsystem",
             "received_share",
         ] {
