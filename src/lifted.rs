@@ -526,8 +526,9 @@ impl LiftedMoments {
         }
     }
 
-    /// `S_ii = P_ii + m_i m_iᵀ` into `out` (`n × n`).
-    pub fn second_moment(&self, i: usize, n: usize, out: &mut DMatrix<f64>) {
+    /// `S_ii = P_ii + m_i m_iᵀ` into `out` (`n × n`, column-major).
+    pub fn second_moment(&self, i: usize, n: usize, out: &mut [f64]) {
+        let mut out = nalgebra::DMatrixViewMut::from_slice(out, n, n);
         out.copy_from(&self.cov.view((i * n, i * n), (n, n)));
         let mi = self.mean.rows(i * n, n);
         out.ger(1.0, &mi, &mi, 1.0);

@@ -240,7 +240,7 @@ impl CentralizedFilter {
             if let Some(mom) = &self.moments
                 && p * (1.0 - p) != 0.0
             {
-                mom.second_moment(i, n, &mut self.s_ii);
+                mom.second_moment(i, n, self.s_ii.as_mut_slice());
                 self.js.gemm(1.0, &prm.J, &self.s_ii, 0.0);
                 rb.gemm(p * (1.0 - p), &self.js, &prm.J.transpose(), 1.0);
             }
@@ -284,6 +284,17 @@ impl CentralizedFilter {
 }
 
 impl ChainFilter for CentralizedFilter {
+    fn second_moments(&self, out: &mut [f64]) -> bool {
+        let Some(moments) = &self.moments else {
+            return false;
+        };
+        let n = self.model.dims.n;
+        for (i, s) in out.chunks_exact_mut(n * n).enumerate() {
+            moments.second_moment(i, n, s);
+        }
+        true
+    }
+
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = &Arc::clone(&self.model);
         let d = model.dims;

@@ -33,6 +33,12 @@ pub trait ChainFilter: Send {
     fn filtered(&self) -> (&[f64], &[f64]);
     /// After step `t`: `x̂(t+1|t)` and the diagonal blocks of `T(t+1)`.
     fn predicted(&self) -> (&[f64], &[f64]);
+    /// With Nahi's update and unknown dropouts ([`reads_second_moment`]): the diagonal blocks
+    /// of the second moment `S(t+1)` the next update's gain reads into `out` (`N·n²`,
+    /// column-major blocks), and `true`; `false` (nothing written) for the other updates.
+    fn second_moments(&self, _out: &mut [f64]) -> bool {
+        false
+    }
     /// The largest estimated relative error of step 1 so far (`transfer` only; docs/theory.md §2).
     fn solver_error_estimate(&self) -> f64 {
         0.0

@@ -30,8 +30,6 @@ use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use nalgebra::DMatrix;
-
 use crate::error::{Error, Result};
 use crate::filter::kernel::{DynamicKernel, FixedKernel, LANES, LaneData, LocalData, LocalKernel};
 use crate::filter::{
@@ -145,10 +143,8 @@ pub struct TwoStepFilter<K: LocalKernel = DynamicKernel> {
 #[derive(Clone)]
 struct Worker<K> {
     kernel: K,
-    /// `S` of the current run of subsystems (`n × n` each), and a matrix for the lifted
-    /// moments.
+    /// `S` of the current run of subsystems (`n × n` each).
     s_buf: Vec<f64>,
-    s_mat: DMatrix<f64>,
     /// `R u` of the run.
     ru: Vec<f64>,
     /// The run's moment covariances and means before their prediction.
@@ -163,7 +159,6 @@ impl<K: LocalKernel> Worker<K> {
         Self {
             kernel: K::new(model),
             s_buf: vec![0.0; run * n * n],
-            s_mat: DMatrix::zeros(n, n),
             ru: vec![0.0; run * q],
             cov: vec![0.0; run * n * n],
             mean: vec![0.0; run * n],
@@ -230,8 +225,7 @@ fn second_moments<K: LocalKernel>(
     let s_run = &mut wk.s_buf[..len * nn];
     if let Some(moments) = inp.lifted {
         for (j, s) in s_run.chunks_exact_mut(nn).enumerate() {
-            moments.second_moment(i + j, n, &mut wk.s_mat);
-            s.copy_from_slice(wk.s_mat.as_slice());
+            moments.second_moment(i + j, n, s);
         }
         return;
     }
@@ -888,6 +882,32 @@ impl<K: LocalKernel> TwoStepFilter<K> {
 }
 
 impl<K: LocalKernel> ChainFilter for TwoStepFilter<K> {
+    fn second_moments(&self, out: &mut [f64]) -> bool {
+        if !reads_second_moment(self.opts.dropouts, self.opts.update) {
+            return false;
+        }
+        let n = self.model.dims.n;
+        if let Some((_, moments)) = &self.lifted {
+            for (i, s) in out.chunks_exact_mut(n * n).enumerate() {
+                moments.second_moment(i, n, s);
+            }
+            return true;
+        }
+        // One matrix for all subsystems, or one each (moment_blocks takes either).
+        let cov = match self.moment_cov.is_empty() {
+            true => &self.moment_shared,
+            false => &self.moment_cov,
+        };
+        match self.opts.second_moment {
+            SecondMoment::Local => moment_blocks(out, cov, &self.moment_mean, n),
+            _ if cov.len() == out.len() => out.copy_from_slice(cov),
+            _ => out
+                .chunks_exact_mut(n * n)
+                .for_each(|s| s.copy_from_slice(cov)),
+        }
+        true
+    }
+
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = &self.model.clone();
         let d = model.dims;

@@ -117,6 +117,7 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
         p: [f64; LANES],
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         ru: &[f64],
     ) -> bool {
@@ -144,7 +145,9 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
                     let eps = w * pi + w0 * (one - pi);
                     (pi * white1 + (one - pi) * white0, two_q, eps, Some(pi))
                 } else {
-                    let Some((nis, variance, eps)) = nahi(set, Lanes::from(p), &s1, &jm, &e0)
+                    let moment = moment.map(gather::<N, N>);
+                    let Some((nis, variance, eps)) =
+                        nahi(set, Lanes::from(p), &s1, &jm, &e0, moment)
                     else {
                         return false;
                     };
@@ -167,13 +170,15 @@ impl<const N: usize, const Q: usize> LaneTerms<N, Q> {
 
 /// Nahi's two-component measurement ([`super::term`], docs/theory.md §14): the NIS against
 /// `Σ_y = p S₁ + (1−p) M + p(1−p) (J m)(J m)ᵀ`, its variance from the two components, and the
-/// standardised innovation.
+/// standardised innovation, from `Σ_f = M + p² J Σ Jᵀ + p(1−p) J S Jᵀ` where the filter's
+/// second moment `S` is given (else from `Σ_y`).
 fn nahi<const N: usize, const Q: usize>(
     set: &LaneSet<N, Q>,
     p: Lanes,
     s1: &SMatrix<Lanes, Q, Q>,
     jm: &SVector<Lanes, Q>,
     e0: &SVector<Lanes, Q>,
+    moment: Option<SMatrix<Lanes, N, N>>,
 ) -> Option<(Lanes, Lanes, SVector<Lanes, Q>)> {
     let one = Lanes::splat(1.0);
     let sigma_y = s1 * p + set.m * (one - p) + jm * jm.transpose() * (p * (one - p));
@@ -197,5 +202,12 @@ fn nahi<const N: usize, const Q: usize>(
     let [(e1, v1), (e0m, v0)] = moments;
     let q = Lanes::splat(Q as f64);
     let variance = p * (v1 + e1 * e1) + (one - p) * (v0 + e0m * e0m) - q * q;
-    Some((w.norm_squared(), variance, w))
+    let nis = w.norm_squared();
+    if let Some(s) = moment {
+        let sigma_f = (s1 - set.m) * (p * p) + set.m + set.j * s * set.j_tr * (p * (one - p));
+        let lf = factor(sigma_f)?;
+        w = e0 - jm * p;
+        forward(&lf, &mut w);
+    }
+    Some((nis, variance, w))
 }

@@ -121,6 +121,8 @@ struct StepData<'a> {
     t: usize,
     mean: &'a [f64],
     cov: &'a [f64],
+    /// The filter's second moments `S` (`N·n²`), read by Nahi's update's terms.
+    moment: Option<&'a [f64]>,
     y: &'a [f64],
     u: &'a [f64],
 }
@@ -168,6 +170,7 @@ impl Worker {
                         p,
                         &step.mean[i * n..(i + LANES) * n],
                         &step.cov[i * nn..(i + LANES) * nn],
+                        step.moment.map(|s| &s[i * nn..(i + LANES) * nn]),
                         &step.y[i * q..(i + LANES) * q],
                         ru,
                     )
@@ -192,7 +195,11 @@ impl Worker {
             let cov = &step.cov[i * nn..(i + 1) * nn];
             let y = &step.y[i * q..(i + 1) * q];
             let p = window.p[i];
-            let term = match self.scorer.term(step.kind, prm, p, mean, cov, y, ru) {
+            let moment = step.moment.map(|s| &s[i * nn..(i + 1) * nn]);
+            let term = match self
+                .scorer
+                .term(step.kind, prm, p, mean, cov, moment, y, ru)
+            {
                 Some(term) => term,
                 // A prior that is no longer finite is the filter's breakdown, which the run
                 // reports as such: the term is not scored.
@@ -299,7 +306,9 @@ impl InnovationCheck {
 
     /// Scores the measurements `y(t, ·)` (`N·q`, NaN where an element is not in the data)
     /// with inputs `u(t, ·)` (`N·m`) against the prior of step `t`: `x̂(t|t−1)` (`N·n`) and
-    /// the diagonal blocks of its covariance (`N·n²`, column-major). Steps come in order.
+    /// the diagonal blocks of its covariance (`N·n²`, column-major); with Nahi's update, the
+    /// diagonal blocks of the second moment `S` its gain reads at `t` (`N·n²`), which
+    /// standardise the whiteness series (docs/theory.md §14). Steps come in order.
     /// Long chains are scored in parallel, in chunks; the sums over the chain are added in
     /// chunk order, so the figures do not depend on the thread count.
     pub fn step(
@@ -307,6 +316,7 @@ impl InnovationCheck {
         t: usize,
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         u: &[f64],
     ) -> Result<()> {
@@ -317,6 +327,7 @@ impl InnovationCheck {
             t,
             mean,
             cov,
+            moment: moment.filter(|_| self.kind == TermKind::Nahi),
             y,
             u,
         };

@@ -56,7 +56,9 @@ impl Term {
 pub trait TermScorer: Send {
     /// The term of `y` (`q` values, NaN where a row is not in the data) with `R u` = `ru`,
     /// from the prior `N(mean, cov)` of the subsystem (`cov` `n × n`, column-major) and the
-    /// arrival probability `p`. `None` when a covariance is not positive definite.
+    /// arrival probability `p`; with Nahi's update, `moment` is the filter's second moment
+    /// `S` (`n × n`), whose `Σ_f` standardises the innovations. `None` when a covariance is
+    /// not positive definite.
     #[allow(clippy::too_many_arguments)]
     fn term(
         &mut self,
@@ -65,6 +67,7 @@ pub trait TermScorer: Send {
         p: f64,
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         ru: &[f64],
     ) -> Option<Term>;
@@ -85,6 +88,7 @@ pub trait TermScorer: Send {
         _p: [f64; LANES],
         _mean: &[f64],
         _cov: &[f64],
+        _moment: Option<&[f64]>,
         _y: &[f64],
         _ru: &[f64],
     ) -> bool {
@@ -110,10 +114,11 @@ impl<const N: usize, const Q: usize> TermScorer for FixedScorer<N, Q> {
         p: f64,
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         ru: &[f64],
     ) -> Option<Term> {
-        self.one.term(kind, prm, p, mean, cov, y, ru)
+        self.one.term(kind, prm, p, mean, cov, moment, y, ru)
     }
 
     fn eps(&self) -> &[f64] {
@@ -128,10 +133,11 @@ impl<const N: usize, const Q: usize> TermScorer for FixedScorer<N, Q> {
         p: [f64; LANES],
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         ru: &[f64],
     ) -> bool {
-        self.lanes.score(kind, id, prm, p, mean, cov, y, ru)
+        self.lanes.score(kind, id, prm, p, mean, cov, moment, y, ru)
     }
 
     fn lane(&self, l: usize) -> (Term, &[f64]) {
@@ -282,6 +288,35 @@ where
             p * (v1 + e1 * e1) + (1.0 - p) * (v0 + e0 * e0) - qr * qr,
         ))
     }
+
+    /// The standardised innovations `ε = L_f⁻¹ ν` from the matrix Nahi's gain inverts,
+    /// `Σ_f = M + p² J Σ Jᵀ + p(1−p) J S Jᵀ` with the filter's own second moment `S`
+    /// (docs/theory.md §14), into `eps`: unlike `Σ_y`, whose `(J m)(J m)ᵀ` follows the data,
+    /// it leaves a white series white. After [`Self::nahi`], whose `S₁`, `M`, `J m` and `e₀`
+    /// it reads; `None` when `Σ_f` is not positive definite.
+    fn standardise<S: nalgebra::Storage<f64, N, N>>(
+        &mut self,
+        p: f64,
+        y: &[f64],
+        moment: nalgebra::Matrix<f64, N, N, S>,
+    ) -> Option<()> {
+        self.js.gemm(1.0, &self.j, &moment, 0.0);
+        self.x.gemm(p * (1.0 - p), &self.js, &self.j_tr, 0.0);
+        self.x.zip_apply(&self.s1, |a, b| *a += p * p * b);
+        self.x.zip_apply(&self.m, |a, b| *a += (1.0 - p * p) * b);
+        for k in (0..y.len()).filter(|&k| y[k].is_nan()) {
+            self.x.row_mut(k).fill(0.0);
+            self.x.column_mut(k).fill(0.0);
+            self.x[(k, k)] = 1.0;
+        }
+        let lf = self.factor(2, Of::Matrix)?;
+        self.w.copy_from(&self.e0);
+        self.w.axpy(-p, &self.jm, 1.0);
+        lf.l_dirty().solve_lower_triangular_mut(&mut self.w);
+        self.eps.copy_from_slice(self.w.as_slice());
+        self.give_back(2, lf);
+        Some(())
+    }
 }
 
 /// Which matrix a factor is made of.
@@ -304,6 +339,7 @@ where
         p: f64,
         mean: &[f64],
         cov: &[f64],
+        moment: Option<&[f64]>,
         y: &[f64],
         ru: &[f64],
     ) -> Option<Term> {
@@ -373,7 +409,13 @@ where
                 let nis = pi * self.w.norm_squared() + (1.0 - pi) * self.w0.norm_squared();
                 (nis, 2.0 * qr)
             }
-            TermKind::Nahi => self.nahi(p, y, qr)?,
+            TermKind::Nahi => {
+                let figures = self.nahi(p, y, qr)?;
+                if let Some(moment) = moment {
+                    self.standardise(p, y, MatrixView::from_slice_generic(moment, n, n))?;
+                }
+                figures
+            }
         };
         for (eps, v) in self.eps.iter_mut().zip(y) {
             if v.is_nan() {

@@ -308,32 +308,37 @@ impl InnovationReport {
         lines
     }
 
-    /// The figures and the likely cause of a wrong `p`.
+    /// The figures and the likely cause of a wrong `p`: the share is pulled towards the
+    /// configured `p`, so the true one is beyond it.
     fn p_warning(&self) -> (String, String) {
         let s = self.received_share.expect("a share");
-        if self.findings.all_received {
-            let figures = format!(
-                "the share of readings that arrived is about {:.3}, above the band [{:.3}, {:.3}] of p = {:.3}",
-                s.share, s.band[0], s.band[1], s.expected
-            );
-            let likely = if self.gaps > 0 {
-                format!(
-                    "the data show no dropouts: the {} missing values are gaps, not lost readings, so p = 1 (or the dropouts known) fits",
-                    self.gaps
-                )
-            } else {
-                "the data show no dropouts: p = 1 is likely".into()
-            };
-            return (figures, likely);
-        }
         let figures = format!(
             "the share of readings that arrived is about {:.3} (pulled towards the configured p, so a bound), outside the band [{:.3}, {:.3}] of p = {:.3}",
             s.share, s.band[0], s.band[1], s.expected
         );
-        (
-            figures,
-            "p is likely wrong (sisfilt fit estimates it)".into(),
-        )
+        if s.share < s.expected {
+            return (
+                figures,
+                format!(
+                    "p is likely lower than {:.3} (sisfilt fit estimates it)",
+                    s.expected
+                ),
+            );
+        }
+        let mut likely = match self.findings.all_received {
+            true => "the data show no dropouts: p = 1 is likely".to_string(),
+            false => format!(
+                "p is likely higher than {:.3} (sisfilt fit estimates it)",
+                s.expected
+            ),
+        };
+        if self.gaps > 0 {
+            likely += &format!(
+                "; if the only losses are the {} gaps (values missing from the file), p = 1, or the dropouts known, fits",
+                self.gaps
+            );
+        }
+        (figures, likely)
     }
 
     /// The figures and the likely cause of a misfit of the model's form: what the tests saw.

@@ -15,7 +15,7 @@ pub mod spec;
 use std::time::{Duration, Instant};
 
 use crate::error::{Error, Result};
-use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates};
+use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates, reads_second_moment};
 use crate::innovations::{InnovationCheck, InnovationReport};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
@@ -270,10 +270,19 @@ fn run_filter(
     let mut steps = 0;
     let mut timings = Timings::default();
     let mut check = timings.check(|| innovation_check(model, spec));
+    // The second moments S the filter's gain reads, which standardise the innovations
+    // (docs/theory.md §14): only Nahi's update has them.
+    let mut moments = match reads_second_moment(spec.dropouts(), spec.update()) {
+        true => vec![0.0; big_n * n * n],
+        false => Vec::new(),
+    };
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
         model.blank_unmeasured(t, &mut y);
         let (mean, cov) = filter.predicted();
-        timings.check(|| check.step(t, mean, cov, &y, &u))?;
+        let moment = filter
+            .second_moments(&mut moments)
+            .then_some(moments.as_slice());
+        timings.check(|| check.step(t, mean, cov, moment, &y, &u))?;
         timings.filter(|| filter.step(&y, &u))?;
         loglik += filter.log_likelihood().unwrap_or(0.0);
         if !warned_transfer && filter.solver_error_estimate() > TRANSFER_ERROR_WARNING {
@@ -348,6 +357,12 @@ fn run_smoother(
     let mut steps = 0;
     let mut timings = Timings::default();
     let mut check = timings.check(|| innovation_check(model, spec));
+    // The second moments S the filter's gain reads, which standardise the innovations
+    // (docs/theory.md §14): only Nahi's update has them.
+    let mut moments = match reads_second_moment(spec.dropouts(), spec.update()) {
+        true => vec![0.0; big_n * n * n],
+        false => Vec::new(),
+    };
     while let Some(t) = timings.read(|| source.next_step(&mut y, &mut u))? {
         model.blank_unmeasured(t, &mut y);
         let need = memory_bytes(model, kind, t);
@@ -355,7 +370,10 @@ fn run_smoother(
             return Err(RunError::OverMaxMemory { t, need, limit }.into());
         }
         let (mean, cov) = smoother.prior();
-        timings.check(|| check.step(t, mean, cov, &y, &u))?;
+        let moment = smoother
+            .prior_second_moments(&mut moments)
+            .then_some(moments.as_slice());
+        timings.check(|| check.step(t, mean, cov, moment, &y, &u))?;
         timings.filter(|| smoother.step(&y, &u))?;
         nis.extend_from_slice(check.nis());
         if let Some(pi) = smoother.arrival() {

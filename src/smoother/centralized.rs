@@ -100,6 +100,10 @@ impl Smoother for CentralizedSmoother {
         self.filter.predicted()
     }
 
+    fn prior_second_moments(&self, out: &mut [f64]) -> bool {
+        self.filter.second_moments(out)
+    }
+
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
         let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);

@@ -108,6 +108,10 @@ impl Smoother for JointSmoother {
         self.filter.predicted()
     }
 
+    fn prior_second_moments(&self, out: &mut [f64]) -> bool {
+        self.filter.second_moments(out)
+    }
+
     /// The backward pass; if it fails with the default loading, the whole smoother again
     /// with the loadings 1e−7, 1e−6 and 1e−5 until one succeeds, and a note says which.
     fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {

@@ -64,6 +64,10 @@ pub trait Smoother: Send {
     /// The prior of the next forward step: `x̂(t+1|t)` and the diagonal blocks of `T(t+1)`
     /// (before the first step, those of step 1), as [`crate::filter::ChainFilter::predicted`] gives them.
     fn prior(&self) -> (&[f64], &[f64]);
+    /// The forward filter's [`ChainFilter::second_moments`] for the next step.
+    ///
+    /// [`ChainFilter::second_moments`]: crate::filter::ChainFilter::second_moments
+    fn prior_second_moments(&self, out: &mut [f64]) -> bool;
 }
 
 /// The gain `L_t` of one backward step, which maps what the later data say about `x(t+1)` to

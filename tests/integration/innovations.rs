@@ -245,10 +245,10 @@ fn nahi_nis_moments_match_a_monte_carlo() {
                 y += &prm.J * x;
             }
             let term = ws
-                .term(kind, prm, p, &mean, cov.as_slice(), y.as_slice(), &ru)
+                .term(kind, prm, p, &mean, cov.as_slice(), None, y.as_slice(), &ru)
                 .unwrap();
             let same = dynamic
-                .term(kind, prm, p, &mean, cov.as_slice(), y.as_slice(), &ru)
+                .term(kind, prm, p, &mean, cov.as_slice(), None, y.as_slice(), &ru)
                 .unwrap();
             assert!((term.nis - same.nis).abs() <= 1e-12 * term.nis.max(1.0));
             assert!((term.variance - same.variance).abs() <= 1e-12 * term.variance);
@@ -271,9 +271,10 @@ fn nahi_nis_moments_match_a_monte_carlo() {
 }
 
 /// Four subsystems scored at once (compile-time sizes, every row received) give each the
-/// figures of its own term to 1e−12, for every kind of term, with arrival probabilities
-/// that differ between the lanes (0 and 1 among them); a lane whose `J Σ Jᵀ + M` is not
-/// positive definite leaves the four to be scored one at a time.
+/// figures of its own term to 1e−12, for every kind of term (Nahi's with and without the
+/// filter's second moment, whose standardised innovations equal `L_f⁻¹ ν` written here),
+/// with arrival probabilities that differ between the lanes (0 and 1 among them); a lane whose
+/// `J Σ Jᵀ + M` is not positive definite leaves the four to be scored one at a time.
 #[test]
 fn lanes_score_as_terms_one_at_a_time() {
     use sisfilt::filter::kernel::LANES;
@@ -297,14 +298,30 @@ fn lanes_score_as_terms_one_at_a_time() {
             c.as_slice().to_vec()
         })
         .collect();
+    // A second moment S_l = Σ_l + m_l m_lᵀ + I for Nahi's standardisation.
+    let moment: Vec<f64> = (0..LANES)
+        .flat_map(|l| {
+            let m = DVector::from_column_slice(&mean[l * n..(l + 1) * n]);
+            let c = DMatrix::from_column_slice(n, n, &cov[l * n * n..(l + 1) * n * n]);
+            (c + &m * m.transpose() + DMatrix::identity(n, n))
+                .as_slice()
+                .to_vec()
+        })
+        .collect();
     let mut lanes = scorer(n, q);
     let mut one = scorer(n, q);
-    for kind in [TermKind::Gaussian, TermKind::Nahi, TermKind::Mixture] {
+    let kinds = [
+        (TermKind::Gaussian, None),
+        (TermKind::Nahi, None),
+        (TermKind::Nahi, Some(moment.as_slice())),
+        (TermKind::Mixture, None),
+    ];
+    for (kind, moment) in kinds {
         let p = match kind {
             TermKind::Gaussian => [1.0; LANES],
             _ => [0.8, 0.0, 1.0, 0.35],
         };
-        assert!(lanes.score_lanes(kind, 0, prm, p, &mean, &cov, &y, &ru));
+        assert!(lanes.score_lanes(kind, 0, prm, p, &mean, &cov, moment, &y, &ru));
         for l in 0..LANES {
             let (term, eps) = lanes.lane(l);
             let (nn, v, qv) = (
@@ -312,8 +329,18 @@ fn lanes_score_as_terms_one_at_a_time() {
                 l * n..(l + 1) * n,
                 l * q..(l + 1) * q,
             );
+            let s = moment.map(|s| &s[nn.clone()]);
             let alone = one
-                .term(kind, prm, p[l], &mean[v], &cov[nn], &y[qv.clone()], &ru[qv])
+                .term(
+                    kind,
+                    prm,
+                    p[l],
+                    &mean[v.clone()],
+                    &cov[nn.clone()],
+                    s,
+                    &y[qv.clone()],
+                    &ru[qv.clone()],
+                )
                 .unwrap();
             let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * (1.0 + b.abs());
             assert!(
@@ -330,13 +357,41 @@ fn lanes_score_as_terms_one_at_a_time() {
                 eps.iter().zip(one.eps()).all(|(a, b)| close(*a, *b)),
                 "{kind:?} lane {l}"
             );
+            // With S: ε = L_f⁻¹ (y − R u − p J m), Σ_f = M + p² J Σ Jᵀ + p(1−p) J S Jᵀ.
+            if let Some(s) = s {
+                let pl = p[l];
+                let j = &prm.J;
+                let sigma = DMatrix::from_column_slice(n, n, &cov[nn.clone()]);
+                let sm = DMatrix::from_column_slice(n, n, s);
+                let sigma_f = &prm.M
+                    + j * sigma * j.transpose() * (pl * pl)
+                    + j * sm * j.transpose() * (pl * (1.0 - pl));
+                let m = DVector::from_column_slice(&mean[v]);
+                let nu = DVector::from_column_slice(&y[qv.clone()])
+                    - DVector::from_column_slice(&ru[qv])
+                    - j * m * pl;
+                let want = sigma_f
+                    .cholesky()
+                    .unwrap()
+                    .l()
+                    .solve_lower_triangular(&nu)
+                    .unwrap();
+                assert!(
+                    one.eps()
+                        .iter()
+                        .zip(want.iter())
+                        .all(|(a, b)| close(*a, *b)),
+                    "lane {l}: ε {:?} against {want}",
+                    one.eps()
+                );
+            }
         }
         // Lane 2's Σ far from positive definite: J Σ Jᵀ + M is not either.
         let mut broken = cov.clone();
         broken[2 * n * n..3 * n * n]
             .iter_mut()
             .for_each(|v| *v *= -100.0);
-        assert!(!lanes.score_lanes(kind, 0, prm, p, &mean, &broken, &y, &ru));
+        assert!(!lanes.score_lanes(kind, 0, prm, p, &mean, &broken, moment, &y, &ru));
     }
 }
 

@@ -30,3 +30,4 @@ mod settings;
 mod shards;
 mod simulate_cli;
 mod smoother;
+mod verdict;

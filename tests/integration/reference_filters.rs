@@ -330,7 +330,7 @@ fn lifted_second_moments_match_monte_carlo() {
     for t in 1..=20 {
         if let Some(c) = checks.iter().position(|&k| k == t) {
             for i in 0..big_n {
-                moments.second_moment(i, n, &mut s_ii);
+                moments.second_moment(i, n, s_ii.as_mut_slice());
                 let est = mc[c].rows(i * n, n) / runs as f64;
                 let tol = 0.04 * s_ii.amax();
                 assert!(

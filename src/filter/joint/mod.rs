@@ -32,7 +32,7 @@ use crate::linalg::band::{
     BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
     completion_precision, sandwich,
 };
-use crate::linalg::mat_vec_add;
+use crate::linalg::{mat_vec_add, moment_blocks};
 use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
 use crate::run::spec::{Setting, SpecError, check_non_negative, check_update};
@@ -594,7 +594,7 @@ impl JointFilter {
                     &mean[i * n..(i + 1) * n],
                     s,
                 ),
-                Moments::Lifted { moments, .. } => moments.second_moment(i, n, &mut self.info.s),
+                Moments::Lifted { moments, .. } => moments.second_moment(i, n, s),
             }
             let log_density = self.info.add(
                 prm,
@@ -742,6 +742,26 @@ pub(crate) fn band_error(
 }
 
 impl ChainFilter for JointFilter {
+    fn second_moments(&self, out: &mut [f64]) -> bool {
+        let n = self.model.dims.n;
+        let nn = n * n;
+        match &self.moments {
+            Moments::None => return false,
+            Moments::Band { mean, cov, .. } => {
+                for (i, s) in out.chunks_exact_mut(nn).enumerate() {
+                    second_moment(cov.block(i, 0), &mean[i * n..(i + 1) * n], s);
+                }
+            }
+            Moments::Local { mean, cov, .. } => moment_blocks(out, cov, mean, n),
+            Moments::Lifted { moments, .. } => {
+                for (i, s) in out.chunks_exact_mut(nn).enumerate() {
+                    moments.second_moment(i, n, s);
+                }
+            }
+        }
+        true
+    }
+
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
         let model = &self.model.clone();
         let (n, big_n, t) = (model.dims.n, model.subsystems, self.t);
