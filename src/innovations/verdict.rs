@@ -7,8 +7,9 @@ use super::whiteness::{Pooled, Portmanteau};
 use super::{BandBasis, LjungBox, ReceivedShare, Statistic, SubsystemFigures, WorstSubsystem};
 
 /// A correlation is named only where the Bartlett-weighted autocorrelation `|ρ_w|` is above
-/// this: a long chain's pooled sum passes its threshold on correlations too small to matter
-/// (the band-2 joint filter's own, −0.003), where every wrong model measured gave 0.016 or more.
+/// this, and the model's form only where some lag's `|ρ_k|` is: a long chain's pooled sums
+/// pass their thresholds on correlations too small to matter (the band-2 joint filter's own,
+/// −0.003 to −0.007), where every wrong model measured gave 0.016 or more.
 const RHO_MIN: f64 = 0.01;
 /// A received share at least this high says that the data show no dropouts.
 const ALL_RECEIVED: f64 = 0.99;
@@ -88,7 +89,10 @@ impl Findings {
             z,
             nis,
             correlation,
-            portmanteau: pooled.is_some_and(|p| p.portmanteau.p_value < level),
+            portmanteau: pooled.is_some_and(|p| {
+                let q = &p.portmanteau;
+                q.p_value < level && q.lag_rho.iter().any(|r| r.abs() > RHO_MIN)
+            }),
             share: share.is_some_and(|s| s.rejected),
             all_received: share.is_some_and(|s| s.share >= ALL_RECEIVED && s.share > s.expected),
             subsystems,
@@ -351,12 +355,13 @@ impl InnovationReport {
             seen.push(sign.to_string());
         }
         if let (true, Some(q)) = (self.findings.portmanteau, &self.portmanteau) {
-            let mut lags: Vec<(usize, f64)> = q
+            let mut lags: Vec<(usize, f64, f64)> = q
                 .lag_z
                 .iter()
                 .enumerate()
-                .map(|(k, z)| (k + 1, *z))
-                .filter(|(_, z)| z.abs() > self.findings.z)
+                .zip(&q.lag_rho)
+                .map(|((k, z), rho)| (k + 1, *z, *rho))
+                .filter(|(_, z, _)| z.abs() > self.findings.z)
                 .collect();
             let which = if lags.is_empty() {
                 "no single lag stands out".to_string()
@@ -364,7 +369,7 @@ impl InnovationReport {
                 lags.truncate(5);
                 let named: Vec<String> = lags
                     .iter()
-                    .map(|(k, z)| format!("{k} (z {z:+.1})"))
+                    .map(|(k, z, rho)| format!("{k} (z {z:+.1}, ρ {rho:+.3})"))
                     .collect();
                 format!("at lag {}", named.join(", "))
             };

@@ -180,6 +180,9 @@ pub struct Portmanteau {
     pub p_value: f64,
     /// `z_k` at the lags `1..=h`, each standard normal for white innovations.
     pub lag_z: Vec<f64>,
+    /// The autocorrelation `ρ_k = A_k / Σ_s n_{k,s} c₀,s` each `z_k` stands for.
+    #[serde(default)]
+    pub lag_rho: Vec<f64>,
 }
 
 /// The whiteness figures pooled over the chain.
@@ -246,6 +249,7 @@ pub(super) fn pooled(series: &[Series], q: usize, lags: usize) -> Option<Pooled>
             dof: lags,
             p_value: chi_squared_sf(statistic, lags as f64),
             lag_z,
+            lag_rho: a.iter().zip(&scale).map(|(a, s)| a / s).collect(),
         },
     })
 }

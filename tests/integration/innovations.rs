@@ -197,6 +197,9 @@ fn known_dropout_figures_equal_a_dense_kalman_filter() {
                 "{filter:?}: z_k {got} against {want}"
             );
         }
+        for (got, [a, _, scale]) in portmanteau.lag_rho.iter().zip(&pooled) {
+            assert!(close(*got, a / scale, tol), "{filter:?}: ρ_k {got}");
+        }
         assert_eq!(
             report.spatial_factor, None,
             "four subsystems: no spatial guard"

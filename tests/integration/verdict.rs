@@ -101,6 +101,7 @@ fn each_rule_names_its_cause_on_constructed_innovations() {
         w.contains("the innovations are not white (Q_acf")
             && w.contains("at lag 1 (z +")
             && w.contains(", 2 (z -")
+            && w.contains(", ρ -0.2")
             && w.ends_with("(its form, not its noise levels)"),
         "{w}"
     );
