@@ -9,10 +9,11 @@ use serde::Serialize;
 use crate::error::Result;
 use crate::filter::joint::{DEFAULT_BAND, DEFAULT_BAND_TOL, flops_per_subsystem_step};
 use crate::interconnect::ChainSolver;
-use crate::lifted::{RadiusEffort, SpectralRadius, a_eff_band, spectral_radius};
+use crate::lifted::a_eff_band;
 use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::{Dims, MATRIX_KEYS, Model};
 use crate::smoother::{SmootherKind, memory_bytes};
+use crate::stability::{RadiusEffort, SpectralRadius, Stability, spectral_radius};
 
 /// The figures of a model.
 #[derive(Debug, Clone, Serialize)]
@@ -75,27 +76,39 @@ pub struct SmootherMemory {
 }
 
 impl ModelCheck {
-    /// The windows whose `A_eff` is not stable (spectral radius ≥ 1).
+    /// The windows whose `A_eff` is not stable: a spectral radius of 1 within its bound, or
+    /// above (docs/theory.md §3).
     pub fn unstable_windows(&self) -> impl Iterator<Item = &WindowCheck> {
         self.windows
             .iter()
-            .filter(|w| w.spectral_radius.value >= 1.0)
+            .filter(|w| w.spectral_radius.stability() != Stability::Stable)
     }
 }
 
-/// What a spectral radius `ρ ≥ 1` of `A_eff` means for the chain and the filters
-/// (docs/theory.md §3), for a warning: `ρ = 1` (to 1e−9) is a marginally stable chain whose
-/// second moment grows linearly in `t`, `ρ > 1` an unstable one whose moment grows
-/// exponentially.
-pub fn instability(spectral_radius: f64) -> String {
-    if (spectral_radius - 1.0).abs() <= 1e-9 {
-        format!(
-            "the spectral radius of A_eff is {spectral_radius:.6} = 1: the chain is marginally stable, its second moment S grows linearly in t (as a random walk's), and the unknown-dropout filter's R_eff = M + p(1−p) J S Jᵀ with it, so its gain slowly fades (docs/theory.md §3)"
-        )
-    } else {
-        format!(
-            "the spectral radius of A_eff is {spectral_radius:.6} > 1: the chain is unstable, its second moment grows exponentially, and the unknown-dropout filter diverges (docs/theory.md §3)"
-        )
+/// What a spectral radius of `A_eff` that is not below 1 means for the chain and the filters
+/// (docs/theory.md §3), for a warning: 1 within its bound is a marginally stable chain whose
+/// second moment grows like a power of `t`; above 1, exact, an unstable one whose moment grows
+/// exponentially; above 1, estimated, one whose powers grow at least Kreiss's
+/// `(ρ − 1) / bound`-fold.
+pub fn instability(rho: &SpectralRadius) -> String {
+    let (value, bound) = (rho.value, rho.bound);
+    let marginal = "the chain is marginally stable: its second moment S grows like a power of t (linearly for a random walk), not exponentially, and the unknown-dropout filter's R_eff = M + p(1−p) J S Jᵀ with it, so its gain slowly fades";
+    match (rho.stability(), rho.exact) {
+        (Stability::Unstable, true) => format!(
+            "the spectral radius of A_eff is {value:.6} > 1: the chain is unstable, its second moment grows exponentially, and the unknown-dropout filter diverges (docs/theory.md §3)"
+        ),
+        (Stability::Unstable, false) => format!(
+            "the spectral radius of A_eff is estimated at {value:.6} ± {bound:.1e} (Krylov), above 1: the chain is unstable, or so far from normal that some power of A_eff grows at least {:.1}-fold (Kreiss's bound); either way the unknown-dropout filter's second moment grows with it (docs/theory.md §3); sisfilt check on a copy of the chain of at most {} lifted states (N·n) gives its exact radius",
+            rho.least_growth(),
+            RadiusEffort::DEFAULT.exact_max
+        ),
+        (_, true) => format!(
+            "the spectral radius of A_eff is {value:.6} = 1 (to {bound:.1e}): {marginal} (docs/theory.md §3)"
+        ),
+        (_, false) => format!(
+            "the spectral radius of A_eff is estimated at {value:.6} ± {bound:.1e} (Krylov), which does not exclude 1: no instability is shown, and if the radius is 1, {marginal} (docs/theory.md §3); sisfilt check on a copy of the chain of at most {} lifted states (N·n) gives its exact radius",
+            RadiusEffort::DEFAULT.exact_max
+        ),
     }
 }
 
@@ -163,7 +176,7 @@ fn window_figures(model: &Model, t: usize, joint_band: usize) -> Result<WindowCh
         first: t,
         last: None,
         condition: solver.condition(),
-        spectral_radius: spectral_radius(model, t, &solver, RadiusEffort::THOROUGH),
+        spectral_radius: spectral_radius(model, t, &solver, RadiusEffort::DEFAULT),
         a_eff_half_width: b,
         band_tol: DEFAULT_BAND_TOL,
         unmeasured: Vec::new(),

@@ -26,8 +26,8 @@
 //! - [`inputs`]: the inputs `u(t, ·)`, generated or read; [`simulate`]: the true system with
 //!   dropouts.
 //! - [`interconnect`]: step 1, the chain solve, on [`linalg::band_lu`] (banded LU with a
-//!   condition estimate); [`lifted`]: the whole chain as one system, its `A_eff` and spectral
-//!   radius.
+//!   condition estimate); [`lifted`]: the whole chain as one system and its `A_eff`;
+//!   [`stability`]: the spectral radius of `A_eff`, with its error bound.
 //! - [`filter`]: the Nahi update, the two-step distributed filter, the centralized and the joint
 //!   band-`k` filters, on [`linalg::band`] (the block-banded matrices of the joint filter,
 //!   docs/theory.md §8).
@@ -72,6 +72,7 @@ pub mod plot;
 pub mod run;
 pub mod simulate;
 pub mod smoother;
+pub mod stability;
 
 /// The document `docs/theory.md`, included so that `cargo doc` holds it beside the code.
 #[doc = include_str!("../docs/theory.md")]

@@ -4,8 +4,7 @@
 
 use std::sync::Arc;
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, ColMut, ColRef, MatMut, MatRef, Par};
+use faer::{Accum, MatMut, MatRef};
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
@@ -178,120 +177,6 @@ pub fn a_eff_band(
             }
         }
         return Ok(narrow);
-    }
-}
-
-/// The spectral radius of `A_eff` over a time window.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct SpectralRadius {
-    pub value: f64,
-    /// True when computed from all eigenvalues, false for a Krylov estimate.
-    pub exact: bool,
-}
-
-/// How much work [`spectral_radius`] does (docs/theory.md §3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct RadiusEffort {
-    /// Up to this many lifted states `N · n`, all eigenvalues of the dense `A_eff`.
-    pub exact_max: usize,
-    /// Above it, the largest Ritz value of an Arnoldi process of this many steps.
-    pub krylov: usize,
-}
-
-impl RadiusEffort {
-    /// `check`'s figure: exact up to 1200 lifted states, else 40 Arnoldi steps (more see
-    /// further into the pseudospectrum of a non-normal `A_eff`, docs/theory.md §3).
-    pub const THOROUGH: Self = Self {
-        exact_max: 1200,
-        krylov: 40,
-    };
-    /// A run's stability warning: 20 Arnoldi steps (exact up to 20 lifted states), a few
-    /// per cent of a filter run on W (docs/theory.md §3).
-    pub const QUICK: Self = Self {
-        exact_max: 0,
-        krylov: 20,
-    };
-}
-
-/// Spectral radius of `A_eff(t)`: all eigenvalues of the dense matrix for
-/// `N n ≤ effort.exact_max`; else the largest `|θ|` over the eigenvalues `θ` (Ritz values) of
-/// the Hessenberg matrix `H_k = V_kᵀ A_eff V_k` of `k = effort.krylov` Arnoldi steps from a
-/// fixed start vector (docs/theory.md §3). Exact when the Krylov space reaches every state.
-/// `solver` must be prepared for `t`.
-pub fn spectral_radius(
-    model: &Model,
-    t: usize,
-    solver: &ChainSolver,
-    effort: RadiusEffort,
-) -> SpectralRadius {
-    let size = model.subsystems * model.dims.n;
-    if size <= effort.exact_max {
-        let a = a_eff_dense(model, t, solver);
-        // nalgebra's Schur iteration can stall on the clustered spectra of long chains;
-        // faer's eigenvalue solver uses exceptional shifts and does not.
-        let a = faer::Mat::from_fn(size, size, |r, c| a[(r, c)]);
-        if let Ok(eigenvalues) = a.eigenvalues() {
-            let value = eigenvalues.iter().map(|l| l.norm()).fold(0.0, f64::max);
-            return SpectralRadius { value, exact: true };
-        }
-    }
-    ritz_radius(model, t, solver, effort.krylov.clamp(1, size))
-}
-
-/// The largest Ritz value's modulus after `k ≤ N n` Arnoldi steps on `A_eff(t)`, with
-/// classical Gram–Schmidt applied twice (which keeps `V_k` orthonormal to rounding).
-fn ritz_radius(model: &Model, t: usize, solver: &ChainSolver, k: usize) -> SpectralRadius {
-    let size = model.subsystems * model.dims.n;
-    // `basis` holds v_1 … v_{k+1} one after another (the columns of V); `h` is H_k,
-    // column-major with k + 1 rows.
-    let mut basis = vec![0.0; (k + 1) * size];
-    let mut h = vec![0.0; (k + 1) * k];
-    let mut ws = LiftedWorkspace::default();
-    let start = &mut basis[..size];
-    for (j, v) in start.iter_mut().enumerate() {
-        *v = 1.0 + 0.5 * ((j as f64) * 0.618_033_988_75).fract();
-    }
-    let norm = start.iter().map(|v| v * v).sum::<f64>().sqrt();
-    start.iter_mut().for_each(|v| *v /= norm);
-    let mut steps = k;
-    for j in 0..k {
-        let (done, rest) = basis.split_at_mut((j + 1) * size);
-        let next = &mut rest[..size];
-        apply_a_eff(model, t, solver, &done[j * size..], next, &mut ws);
-        let scale = next.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let done = MatRef::from_column_major_slice(&done[..], size, j + 1);
-        for _pass in 0..2 {
-            let coefficients = done.transpose() * ColRef::from_slice(next);
-            matmul(
-                ColMut::from_slice_mut(next).as_mat_mut(),
-                Accum::Add,
-                done,
-                coefficients.as_mat(),
-                -1.0,
-                Par::Seq,
-            );
-            for (i, c) in coefficients.iter().enumerate() {
-                h[j * (k + 1) + i] += c;
-            }
-        }
-        let norm = next.iter().map(|v| v * v).sum::<f64>().sqrt();
-        h[j * (k + 1) + j + 1] = norm;
-        // An invariant subspace: its eigenvalues are eigenvalues of A_eff.
-        if norm <= 1e-12 * scale.max(f64::MIN_POSITIVE) {
-            steps = j + 1;
-            break;
-        }
-        next.iter_mut().for_each(|v| *v /= norm);
-    }
-    let hk = faer::Mat::from_fn(steps, steps, |r, c| h[c * (k + 1) + r]);
-    let value = match hk.eigenvalues() {
-        Ok(eigenvalues) => eigenvalues.iter().map(|l| l.norm()).fold(0.0, f64::max),
-        // The Hessenberg QR did not converge: the norm of H_k bounds its eigenvalues.
-        Err(_) => hk.norm_l2(),
-    };
-    SpectralRadius {
-        value,
-        exact: steps == size,
     }
 }
 

@@ -38,11 +38,7 @@ pub fn run(path: &Path, settings: &[ConfigSetting]) -> Result<()> {
     // Print only once everything passed, so that a bad config prints nothing on stdout.
     print_line(&report(path, settings, &figures))?;
     for w in figures.unstable_windows() {
-        warn(format!(
-            "{}: {}",
-            span(w),
-            instability(w.spectral_radius.value)
-        ));
+        warn(format!("{}: {}", span(w), instability(&w.spectral_radius)));
     }
     Ok(())
 }
@@ -104,9 +100,9 @@ fn report(path: &Path, settings: &[ConfigSetting], figures: &ModelCheck) -> Stri
             w.condition,
             w.spectral_radius.value,
             if w.spectral_radius.exact {
-                "exact"
+                format!("exact to {:.1e}", w.spectral_radius.bound)
             } else {
-                "Krylov estimate"
+                format!("Krylov estimate ± {:.1e}", w.spectral_radius.bound)
             }
         ));
         report.push(format!(

@@ -19,11 +19,11 @@ use crate::filter::{ChainFilter, Dropouts, FilterKind, check_estimates, reads_se
 use crate::innovations::{InnovationCheck, InnovationReport};
 use crate::interconnect::{ChainSolver, TRANSFER_ERROR_WARNING};
 use crate::io::estimates::{EstimateKind, EstimatesSummary};
-use crate::lifted::{RadiusEffort, spectral_radius};
 use crate::linalg::band::SymBand;
 use crate::memory::human_bytes;
 use crate::model::Model;
 use crate::smoother::{Smoother, memory_bytes};
+use crate::stability::{RadiusEffort, SpectralRadius, Stability, spectral_radius};
 
 use score::Scores;
 pub use source::{
@@ -60,8 +60,12 @@ pub enum Note {
     OverconfidentDistributed,
     /// …and its smoother can be worse than the filter (docs/theory.md §9).
     OverconfidentDistributedSmoother,
-    /// The spectral radius of `A_eff` is at least 1 from step `first` on (docs/theory.md §3).
-    Unstable { first: usize, spectral_radius: f64 },
+    /// The spectral radius of `A_eff` is not below 1 from step `first` on: 1 within its bound,
+    /// or above (docs/theory.md §3).
+    Unstable {
+        first: usize,
+        spectral_radius: SpectralRadius,
+    },
     /// The transfer solver's estimated relative error passed the warning level at `t`
     /// (docs/theory.md §2).
     InaccurateTransfer { error: f64, t: usize },
@@ -81,14 +85,14 @@ impl std::fmt::Display for Note {
             Self::Unstable {
                 first: 1,
                 spectral_radius,
-            } => f.write_str(&crate::check::instability(*spectral_radius)),
+            } => f.write_str(&crate::check::instability(spectral_radius)),
             Self::Unstable {
                 first,
                 spectral_radius,
             } => write!(
                 f,
                 "from t = {first}, {}",
-                crate::check::instability(*spectral_radius)
+                crate::check::instability(spectral_radius)
             ),
             Self::InaccurateTransfer { error, t } => write!(
                 f,
@@ -235,11 +239,11 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
         let chains = (0..model.windows().len()).filter(|&k| model.first_window_of_chain(k) == k);
         for w in chains.map(|k| &model.windows()[k]) {
             let solver = ChainSolver::new(model, w.first)?;
-            let rho = spectral_radius(model, w.first, &solver, RadiusEffort::QUICK);
-            if rho.value >= 1.0 {
+            let rho = spectral_radius(model, w.first, &solver, RadiusEffort::DEFAULT);
+            if rho.stability() != Stability::Stable {
                 notes.push(Note::Unstable {
                     first: w.first,
-                    spectral_radius: rho.value,
+                    spectral_radius: rho,
                 });
                 break;
             }

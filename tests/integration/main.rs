@@ -30,4 +30,5 @@ mod settings;
 mod shards;
 mod simulate_cli;
 mod smoother;
+mod stability;
 mod verdict;

@@ -19,9 +19,9 @@ use sisfilt::filter::{
 };
 use sisfilt::inputs::InputStream;
 use sisfilt::interconnect::SolverKind;
-use sisfilt::lifted::RadiusEffort;
 use sisfilt::model::Model;
 use sisfilt::simulate::simulate;
+use sisfilt::stability::RadiusEffort;
 
 use crate::common::{Run, simulate_steps, toml_matrix};
 
@@ -278,7 +278,7 @@ fn chain() -> impl Strategy<Value = Chain> {
 fn stable_model(chain: &Chain) -> Option<Model> {
     let model = chain.model();
     let solver = sisfilt::interconnect::ChainSolver::new(&model, 1).unwrap();
-    let rho = sisfilt::lifted::spectral_radius(&model, 1, &solver, RadiusEffort::THOROUGH);
+    let rho = sisfilt::stability::spectral_radius(&model, 1, &solver, RadiusEffort::DEFAULT);
     (rho.value < 0.99).then_some(model)
 }
 
