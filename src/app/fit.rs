@@ -35,7 +35,9 @@ pub struct FitArgs {
     /// uncertainty, which Q then absorbs).
     #[arg(long, value_parser = choice::<FilterKind>(), default_value = "joint")]
     pub filter: FilterKind,
-    /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: 2].
+    /// Joint filter: keep the covariance blocks |i − j| ≤ K [default: the cheapest band whose
+    /// log-likelihood is within 0.1 nat of the centralized filter's, or of the next wider band's
+    /// on chains too long for it; the centralized filter where that is cheaper].
     #[arg(long, value_name = "K")]
     pub band: Option<usize>,
     /// unknown: the likelihood of the mixture update, which weighs each measurement by the

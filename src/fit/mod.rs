@@ -9,6 +9,7 @@
 //! optimum, the Hessian of `−ℓ` by central differences gives the standard errors and the
 //! correlations, and the per-step scores the robust (sandwich) ones.
 
+pub mod band;
 mod parameter;
 mod report;
 
@@ -30,6 +31,7 @@ use crate::innovations::Fitted;
 use crate::model::Model;
 use crate::run::{self, CheckedSpec, RunSpec, SpecError};
 
+pub use band::ObjectiveChoice;
 pub use parameter::{ParamGroup, Parameter};
 pub use report::{FitReport, FittedParameter, ReportFormat};
 
@@ -88,7 +90,7 @@ pub struct FitSpec {
     pub params: Vec<ParamGroup>,
     /// The filter whose log-likelihood is maximised.
     pub filter: FilterKind,
-    /// The joint filter's band `K` (default 2).
+    /// The joint filter's band `K`; `None`: the fit chooses it ([`band`]).
     pub band: Option<usize>,
     pub dropouts: Dropouts,
     pub max_iter: usize,
@@ -115,6 +117,8 @@ impl Default for FitSpec {
 pub struct CheckedFit {
     params: Vec<ParamGroup>,
     run: CheckedSpec,
+    /// The joint filter without a band given: the fit chooses it ([`band`]).
+    choose_band: bool,
     max_iter: usize,
 }
 
@@ -155,15 +159,50 @@ impl FitSpec {
         Ok(CheckedFit {
             params,
             run,
+            choose_band: self.filter == FilterKind::Joint && self.band.is_none(),
             max_iter: self.max_iter,
         })
     }
 }
 
 impl CheckedFit {
-    /// The run whose log-likelihood is maximised (and whose innovation check judges the fit).
-    pub fn run_spec(&self) -> &CheckedSpec {
-        &self.run
+    /// The objective of a fit of `model` to `y`: the run whose log-likelihood is maximised
+    /// (and whose innovation check judges the fit), the joint filter's band chosen where none
+    /// was given ([`band::choose`]), with the next wider objective to compare at the estimate.
+    fn objective(
+        &self,
+        model: &Model,
+        y: &[f64],
+        u: Option<&[f64]>,
+    ) -> Result<(CheckedSpec, Option<ObjectiveChoice>)> {
+        let fixed = |band: Option<usize>, reference| ObjectiveChoice {
+            band,
+            chosen: false,
+            tried: Vec::new(),
+            reference,
+            gap_at_estimate: None,
+        };
+        Ok(match self.run.filter_kind() {
+            FilterKind::Joint if self.choose_band => {
+                let (chosen, reference, tried) = band::choose(model, &self.run, y, u)?;
+                let choice = ObjectiveChoice {
+                    band: chosen.band,
+                    chosen: true,
+                    tried,
+                    reference,
+                    gap_at_estimate: None,
+                };
+                (self.run.with_band(chosen.band), Some(choice))
+            }
+            FilterKind::Joint => {
+                let k = self.run.joint_options().map_or(0, |j| j.band);
+                let k = k.min(model.subsystems - 1);
+                let reference = band::wider_than(model, &self.run, k)?;
+                (self.run, Some(fixed(Some(k), reference)))
+            }
+            FilterKind::Centralized => (self.run, Some(fixed(None, None))),
+            FilterKind::Distributed => (self.run, None),
+        })
     }
 }
 
@@ -214,7 +253,8 @@ pub fn fit(
     let started = Instant::now();
     let parameters = Parameter::all(model, &spec.params);
     let mut warnings = parameter::start_warnings(model, &parameters);
-    let objective = Objective::new(model, spec, &parameters, y, u)?;
+    let (objective_spec, mut choice) = spec.objective(model, y, u)?;
+    let objective = Objective::new(model, &objective_spec, &parameters, y, u)?;
     let theta0 = objective.theta0.clone();
     let f0 = objective.start_cost;
 
@@ -318,8 +358,21 @@ pub fn fit(
         q: spec.params.contains(&ParamGroup::Q),
         m: spec.params.contains(&ParamGroup::M),
     };
+    if let Some(choice) = choice.as_mut() {
+        if let Some(reference) = choice.reference {
+            choice.gap_at_estimate = Some(band::gap(
+                &fitted,
+                &objective_spec,
+                &reference,
+                loglik,
+                y,
+                u,
+            )?);
+        }
+        warnings.extend(choice.warning());
+    }
     let innovations =
-        run::innovation_report(&fitted, &spec.run, y, u)?.map(|r| r.after_fit(estimated));
+        run::innovation_report(&fitted, &objective_spec, y, u)?.map(|r| r.after_fit(estimated));
     Ok(Fit {
         report: FitReport {
             parameters: fitted_params,
@@ -329,8 +382,9 @@ pub fn fit(
             iterations,
             correlation,
             hessian,
-            filter: spec.run.filter_kind(),
-            dropouts: spec.run.dropouts(),
+            filter: objective_spec.filter_kind(),
+            objective: choice,
+            dropouts: objective_spec.dropouts(),
             observations: objective.observations,
             termination,
             seconds: started.elapsed().as_secs_f64(),
@@ -367,7 +421,7 @@ impl<'a> Objective<'a> {
     /// inputs, a filter that breaks down) is the fit's error.
     fn new(
         model: &'a Model,
-        spec: &'a CheckedFit,
+        run_spec: &'a CheckedSpec,
         parameters: &'a [Parameter],
         y: &'a [f64],
         u: Option<&'a [f64]>,
@@ -389,7 +443,7 @@ impl<'a> Objective<'a> {
         }
         let mut objective = Self {
             model,
-            run: &spec.run,
+            run: run_spec,
             parameters,
             y,
             u,
@@ -403,7 +457,7 @@ impl<'a> Objective<'a> {
         let start = objective
             .model_at(&objective.theta0)
             .ok_or_else(|| Error::Usage("fit: the configured Q or M is not a covariance".into()))?;
-        let loglik: f64 = run::log_likelihood(&start, &spec.run, y, u)?.iter().sum();
+        let loglik: f64 = run::log_likelihood(&start, run_spec, y, u)?.iter().sum();
         objective.evaluations.fetch_add(1, Ordering::Relaxed);
         objective.start_cost = -loglik / observations as f64;
         Ok(objective)

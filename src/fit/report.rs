@@ -4,6 +4,7 @@ use serde::Serialize;
 
 use crate::choice::{Choice, Variant};
 use crate::filter::{Dropouts, FilterKind};
+use crate::fit::ObjectiveChoice;
 use crate::innovations::InnovationReport;
 
 /// How `fit` reports: a table, or JSON for scripts.
@@ -63,7 +64,12 @@ pub struct FitReport {
     pub correlation: Vec<Vec<Option<f64>>>,
     /// The Hessian of `−ℓ` in `θ` at the optimum, in the order of `parameters`.
     pub hessian: Vec<Vec<f64>>,
+    /// The filter whose log-likelihood was maximised (the centralized one where the fit chose
+    /// it over the joint filter's bands).
     pub filter: FilterKind,
+    /// Which objective, and how it was chosen (docs/theory.md §16 "The band"); `None` for the
+    /// distributed filter.
+    pub objective: Option<ObjectiveChoice>,
     pub dropouts: Dropouts,
     /// Measurement elements in the data (gaps left out).
     pub observations: usize,
@@ -127,6 +133,10 @@ impl FitReport {
             self.dropouts_name(),
             self.observations
         );
+        if let Some(objective) = &self.objective {
+            text += &objective.line();
+            text += "\n";
+        }
         text += &format!(
             "optimiser: {} iterations, {} filter runs, {:.2} s; {}\n",
             self.iterations, self.evaluations, self.seconds, self.termination

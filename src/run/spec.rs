@@ -268,6 +268,35 @@ impl CheckedSpec {
         self.joint
     }
 
+    /// The same run by the joint filter at band `k` (this spec's joint options otherwise), or
+    /// with `None` by the centralized filter, the joint filter's exact form (docs/theory.md
+    /// §8): the objectives among which `fit` chooses (docs/theory.md §16).
+    pub fn with_band(&self, band: Option<usize>) -> CheckedSpec {
+        let mut spec = *self;
+        match band {
+            Some(k) => {
+                spec.filter = FilterKind::Joint;
+                spec.joint = Some(JointOptions {
+                    band: k,
+                    dropouts: self.dropouts(),
+                    update: self.update(),
+                    max_memory: self.max_memory,
+                    ..self.joint.unwrap_or_default()
+                });
+            }
+            None => {
+                spec.filter = FilterKind::Centralized;
+                spec.joint = None;
+            }
+        }
+        spec
+    }
+
+    /// The centralized filter refuses chains of more lifted states.
+    pub fn max_lifted(&self) -> usize {
+        self.max_lifted
+    }
+
     /// The smoother, for its memory estimate.
     pub fn smoother_kind(&self) -> SmootherKind {
         match (self.filter, self.joint) {

@@ -239,11 +239,19 @@ fn fit_recovers_what_the_platoon_was_simulated_with() {
         "iterations",
         "correlation",
         "filter",
+        "objective",
         "dropouts",
     ] {
         assert!(report.get(key).is_some(), "{key} missing: {report}");
     }
-    assert_eq!(report["filter"], "joint");
+    // Without --band the fit chooses its objective: a band of the joint filter, or the
+    // centralized filter where that is cheaper (tests/integration/fit_band.rs).
+    assert_eq!(report["objective"]["chosen"], true, "{report}");
+    let filter = match report["objective"]["band"] {
+        serde_json::Value::Null => "centralized",
+        _ => "joint",
+    };
+    assert_eq!(report["filter"], filter);
     assert_eq!(report["dropouts"], "unknown");
     assert!(report["loglik"].as_f64() > report["loglik_start"].as_f64());
 

@@ -16,6 +16,7 @@ mod estimate_cli;
 mod estimator;
 mod evaluate_cli;
 mod fit;
+mod fit_band;
 mod flags;
 mod gaps;
 mod innovations;
