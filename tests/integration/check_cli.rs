@@ -680,16 +680,7 @@ fn estimate_warns_about_an_unstable_window() {
     let unstable = format!("{stable}\n[[override]]\nsteps = [11, 20]\nA = [[1.05]]\n");
     for (name, text, want) in [("stable", &stable, None), ("unstable", &unstable, Some(11))] {
         let config = write_file(dir.path(), &format!("{name}.toml"), text);
-        let data = dir.path().join(name);
-        simulate_files(&config, &data);
-        let out = sisfilt()
-            .arg("estimate")
-            .arg("--meas")
-            .arg(data.join("measurements.csv"))
-            .arg("--out")
-            .arg(dir.path().join(format!("{name}.csv")))
-            .output()
-            .unwrap();
+        let out = crate::common::estimate_simulated(dir.path(), &config, name);
         let stderr = String::from_utf8(out.stderr).unwrap();
         assert!(out.status.success(), "{stderr}");
         let warning = stderr

@@ -256,6 +256,32 @@ pub fn printed_radii(stdout: &str) -> Vec<(String, f64)> {
         .collect()
 }
 
+/// Runs `sisfilt ARGS…` in `dir`, which must succeed.
+pub fn run_ok_in(dir: &Path, args: &[&str]) -> std::process::Output {
+    let out = sisfilt().current_dir(dir).args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// Simulates `config` into `dir/NAME` and runs `sisfilt estimate` on its measurements (the
+/// run's config from its `run.json`) into `dir/NAME.csv`.
+pub fn estimate_simulated(dir: &Path, config: &Path, name: &str) -> std::process::Output {
+    let data = dir.join(name);
+    simulate_files(config, &data);
+    sisfilt()
+        .arg("estimate")
+        .arg("--meas")
+        .arg(data.join("measurements.csv"))
+        .arg("--out")
+        .arg(dir.join(format!("{name}.csv")))
+        .output()
+        .unwrap()
+}
+
 /// Runs `sisfilt simulate CONFIG --out DIR`, which must succeed.
 pub fn simulate_files(config: &Path, out: &Path) {
     let run = sisfilt()

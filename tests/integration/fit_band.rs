@@ -3,9 +3,7 @@
 //! says which; with `--band K` it measures the gap to the next wider objective at the
 //! estimate, and warns when it is above 0.1 nat.
 
-use std::process::Output;
-
-use crate::common::{sisfilt, write_file};
+use crate::common::{run_ok_in, write_file};
 
 /// Masses on springs (`n = q = 2`): each mass is pulled by its neighbours' positions, so the
 /// covariances between subsystems decay slowly along the chain and the band matters.
@@ -17,16 +15,6 @@ fn springs(big_n: usize) -> String {
          M = [[0.01, 0.0], [0.0, 0.01]]\nQ = [[0.0001, 0.0], [0.0, 0.0004]]\n[dropout]\np = 0.9\n\
          [initial]\ncov = [[1.0, 0.0], [0.0, 0.25]]\n"
     )
-}
-
-fn run_in(dir: &std::path::Path, args: &[&str]) -> Output {
-    let out = sisfilt().current_dir(dir).args(args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
 }
 
 /// `fit --params p` on the springs data with `extra` arguments, for two iterations: the band
@@ -44,9 +32,9 @@ fn fit(dir: &std::path::Path, extra: &[&str]) -> (serde_json::Value, String) {
         "2",
     ];
     args.extend_from_slice(extra);
-    let text = run_in(dir, &args);
+    let text = run_ok_in(dir, &args);
     args.extend_from_slice(&["--format", "json"]);
-    let json = run_in(dir, &args);
+    let json = run_ok_in(dir, &args);
     let text = String::from_utf8(text.stdout).unwrap() + &String::from_utf8_lossy(&text.stderr);
     (serde_json::from_slice(&json.stdout).unwrap(), text)
 }
@@ -54,7 +42,7 @@ fn fit(dir: &std::path::Path, extra: &[&str]) -> (serde_json::Value, String) {
 fn simulated(big_n: usize) -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
     write_file(dir.path(), "springs.toml", &springs(big_n));
-    run_in(dir.path(), &["simulate", "springs.toml", "--out", "sim"]);
+    run_ok_in(dir.path(), &["simulate", "springs.toml", "--out", "sim"]);
     dir
 }
 

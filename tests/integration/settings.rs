@@ -3,9 +3,8 @@
 //! estimates' metadata, and is checked as the file is, naming its key and `--set`.
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
 
-use crate::common::{one_error_line, shipped_config, sisfilt, write_file};
+use crate::common::{one_error_line, run_ok_in, shipped_config, sisfilt, write_file};
 
 /// The platoon config with `p = 0.85` and `M` replaced by hand, in `dir` (beside the shipped
 /// one's inputs it needs none).
@@ -31,16 +30,6 @@ fn with_sets<'a>(args: &[&'a str]) -> Vec<&'a str> {
     [args, &SETS[..]].concat()
 }
 
-fn run(dir: &Path, args: &[&str]) -> Output {
-    let out = sisfilt().current_dir(dir).args(args).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
@@ -54,8 +43,8 @@ fn set_gives_what_the_edited_file_gives_on_every_command() {
     let (edited, shipped) = (edited.to_str().unwrap(), shipped.to_str().unwrap());
 
     // check: the same report but for its first line, which names the settings.
-    let by_hand = run(dir, &["check", edited]);
-    let set = run(dir, &with_sets(&["check", shipped]));
+    let by_hand = run_ok_in(dir, &["check", edited]);
+    let set = run_ok_in(dir, &with_sets(&["check", shipped]));
     let (by_hand, set) = (
         String::from_utf8(by_hand.stdout).unwrap(),
         String::from_utf8(set.stdout).unwrap(),
@@ -75,7 +64,7 @@ fn set_gives_what_the_edited_file_gives_on_every_command() {
         if sets {
             args.extend(SETS);
         }
-        run(dir, &args);
+        run_ok_in(dir, &args);
     };
     sim("by_hand", edited, false);
     sim("set", shipped, true);
@@ -109,12 +98,12 @@ fn set_gives_what_the_edited_file_gives_on_every_command() {
             out,
         ];
         args.extend(extra);
-        run(dir, &args);
+        run_ok_in(dir, &args);
         json(&dir.join(out))
     };
     let by_hand = estimate("by_hand.json", &["--config", edited]);
     let set = estimate("set.json", &with_sets(&["--config", shipped]));
-    let bare = run(
+    let bare = run_ok_in(
         dir,
         &[
             "-q",
@@ -144,7 +133,7 @@ fn set_gives_what_the_edited_file_gives_on_every_command() {
         if sets {
             args.extend(SETS);
         }
-        let out = String::from_utf8(run(dir, &args).stdout).unwrap();
+        let out = String::from_utf8(run_ok_in(dir, &args).stdout).unwrap();
         out.lines()
             .skip(1)
             .map(|l| l.split_whitespace().take(7).collect::<Vec<_>>().join(" "))
@@ -169,7 +158,7 @@ fn set_gives_what_the_edited_file_gives_on_every_command() {
             out,
         ];
         args.extend(extra);
-        run(dir, &args);
+        run_ok_in(dir, &args);
         std::fs::read(dir.join(out)).unwrap()
     };
     assert!(

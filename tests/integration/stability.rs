@@ -3,7 +3,7 @@
 //! non-normal one (radius 0.9, Ritz values near 1.2). Exact where computed exactly, the bound
 //! honoured where estimated, and `check` and `estimate` say the same.
 
-use crate::common::{model_from, simulate_files, sisfilt, write_file};
+use crate::common::{estimate_simulated, model_from, sisfilt, write_file};
 use sisfilt::stability::{RadiusEffort, SpectralRadius, Stability, spectral_radius};
 
 /// Heat diffusion along `big_n` segments with insulated ends: `x⁺(i) = x(i) + α (x(i−1) −
@@ -142,16 +142,7 @@ fn check_and_estimate_say_the_same() {
         };
         let from_check = warning(&check.stderr);
         assert!(from_check.contains(says), "{name}: {from_check}");
-        let data = dir.path().join(name);
-        simulate_files(&config, &data);
-        let run = sisfilt()
-            .arg("estimate")
-            .arg("--meas")
-            .arg(data.join("measurements.csv"))
-            .arg("--out")
-            .arg(dir.path().join(format!("{name}.csv")))
-            .output()
-            .unwrap();
+        let run = estimate_simulated(dir.path(), &config, name);
         assert!(run.status.success());
         assert_eq!(warning(&run.stderr), from_check, "{name}");
     }
