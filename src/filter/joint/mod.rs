@@ -16,9 +16,13 @@
 //! ```
 
 mod information;
+mod loading;
+mod moments;
 mod schedule;
 
 use information::InfoWorkspace;
+pub(crate) use loading::Loading;
+use moments::Moments;
 
 pub use schedule::{JointSchedule, ScheduledJoint};
 
@@ -32,7 +36,6 @@ use crate::linalg::band::{
     BandCholesky, BandError, CompletionWorkspace, GenBand, SandwichWorkspace, SymBand,
     completion_precision, sandwich,
 };
-use crate::linalg::{mat_vec_add, moment_blocks};
 use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
 use crate::run::spec::{Setting, SpecError, check_non_negative, check_update};
@@ -199,91 +202,6 @@ impl AEffBand {
     /// The half-width `b`.
     pub fn half_width(&self) -> usize {
         self.band.half_width()
-    }
-}
-
-/// What the filter uses for the raw second moments `S_ii` (docs/theory.md §8 update step 1).
-enum Moments {
-    /// Known-dropout mode: not needed.
-    None,
-    /// The moment mean and the band of the moment covariance, with its completion to width `w`.
-    Band {
-        mean: Vec<f64>,
-        cov: SymBand,
-        completed: SymBand,
-        /// The factor of the moment's completion precision (the filter's own factor is kept
-        /// for [`JointSchedule`]).
-        chol: Box<BandCholesky>,
-    },
-    /// The exact dense lifted moments (docs/theory.md §3), for tests on small chains.
-    Lifted {
-        sys: Box<LiftedSystem>,
-        moments: Box<LiftedMoments>,
-    },
-    /// The two-step filter's per-subsystem moments with the filter's own `v̂` (docs/theory.md §4).
-    Local {
-        mean: Vec<f64>,
-        cov: Vec<f64>,
-        scratch: Vec<f64>,
-        ws: Box<nahi::Workspace>,
-    },
-}
-
-/// How far below the variance one reading resolves the loading's floor lies.
-const FLOOR_SCALE: f64 = 1e-100;
-
-/// The diagonal loading of docs/theory.md §8 "Loading": `P_ii += ε max(tr P_ii / n, σ²_f) I`
-/// on every diagonal block, with the floor `σ²_f` of [`Loading::floor_of`], so that a block
-/// whose variance is zero (a state known exactly) or has decayed to nothing still gets one.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct Loading {
-    pub eps: f64,
-    pub floor: f64,
-}
-
-impl Loading {
-    /// The loading `eps` on `model`.
-    pub fn new(model: &Model, eps: f64) -> Self {
-        Self {
-            eps,
-            floor: Self::floor_of(model),
-        }
-    }
-
-    /// `σ²_f = 10⁻¹⁰⁰ min tr M / tr(Jᵀ J)` over the parameter sets that measure anything:
-    /// the variance of a state element as one reading resolves it, scaled far below any
-    /// variance that matters and far above where products of two variances underflow (0 when
-    /// nothing is measured).
-    pub fn floor_of(model: &Model) -> f64 {
-        let floor = model
-            .param_sets()
-            .iter()
-            .filter_map(|p| {
-                let resolved = p.J.norm_squared();
-                (resolved > 0.0).then(|| p.M.trace() / resolved)
-            })
-            .fold(f64::INFINITY, f64::min);
-        if floor.is_finite() {
-            FLOOR_SCALE * floor
-        } else {
-            0.0
-        }
-    }
-
-    /// Loads every diagonal block of `p`.
-    pub fn apply(&self, p: &mut SymBand) {
-        if self.eps == 0.0 {
-            return;
-        }
-        let n = p.bs();
-        for i in 0..p.nb() {
-            let b = p.block_mut(i, 0);
-            let trace: f64 = (0..n).map(|c| b[c * n + c]).sum();
-            let added = self.eps * (trace / n as f64).max(self.floor);
-            for c in 0..n {
-                b[c * n + c] += added;
-            }
-        }
     }
 }
 
@@ -584,18 +502,7 @@ impl JointFilter {
             let prm = model.param_set(window.ids[i]);
             let p = if known { 1.0 } else { window.p[i] };
             let s = self.info.s.as_mut_slice();
-            match &self.moments {
-                Moments::None => {}
-                Moments::Band { mean, cov, .. } => {
-                    second_moment(cov.block(i, 0), &mean[i * n..(i + 1) * n], s)
-                }
-                Moments::Local { mean, cov, .. } => second_moment(
-                    &cov[i * n * n..(i + 1) * n * n],
-                    &mean[i * n..(i + 1) * n],
-                    s,
-                ),
-                Moments::Lifted { moments, .. } => moments.second_moment(i, n, s),
-            }
+            self.moments.second_moment(i, n, s);
             let log_density = self.info.add(
                 prm,
                 p,
@@ -619,79 +526,6 @@ impl JointFilter {
             }
         }
         Ok(())
-    }
-
-    /// Predict step 5 (`band` moments) and the other moment recursions, from `t` to `t + 1`.
-    fn propagate_moments(&mut self, u: &[f64]) -> Result<()> {
-        let model = &self.model.clone();
-        let (n, t) = (model.dims.n, self.t);
-        match &mut self.moments {
-            Moments::None => {}
-            Moments::Band {
-                mean,
-                cov,
-                completed,
-                chol,
-            } => {
-                propagate_mean(
-                    model,
-                    t,
-                    &self.solver,
-                    mean,
-                    Some(u),
-                    &mut self.mean_scratch,
-                    &mut self.lifted_ws,
-                );
-                mean.copy_from_slice(&self.mean_scratch);
-                completion_precision(cov, self.k, &mut self.lambda, &mut self.completion)
-                    .map_err(|e| (e, "moment"))
-                    .and_then(|_| chol.factor(&self.lambda).map_err(|e| (e, "moment")))
-                    .map_err(|(e, what)| band_error_at(t, self.loading.eps, self.k, what, e))?;
-                chol.selected_inverse(completed);
-                sandwich(self.a_eff.band(), completed, cov, &mut self.sandwich);
-                add_process_noise(model, t, cov);
-            }
-            Moments::Lifted { sys, moments } => {
-                sys.prepare(model, t)?;
-                moments.propagate(model, sys, u);
-            }
-            Moments::Local {
-                mean,
-                cov,
-                scratch,
-                ws,
-            } => {
-                // v̂ of the mean prediction, left in the workspace by `step`.
-                let s = model.dims.s();
-                let m = model.dims.m;
-                let v = self.lifted_ws.interconnection();
-                let window = model.window(t);
-                for i in 0..model.subsystems {
-                    let prm = model.param_set(window.ids[i]);
-                    let mi = &mut self.mean_scratch[i * n..(i + 1) * n];
-                    mi.fill(0.0);
-                    mat_vec_add(mi, &prm.A, &mean[i * n..(i + 1) * n]);
-                    mat_vec_add(mi, &prm.B, &v[i * s..(i + 1) * s]);
-                    mat_vec_add(mi, &prm.C, &u[i * m..(i + 1) * m]);
-                    let ci = &mut cov[i * n * n..(i + 1) * n * n];
-                    scratch.copy_from_slice(ci);
-                    nahi::propagate_cov(&prm.A, scratch, Some(&prm.Q), ci, ws);
-                }
-                mean.copy_from_slice(&self.mean_scratch);
-            }
-        }
-        Ok(())
-    }
-}
-
-/// `S = P + m mᵀ` (`n × n`, column-major).
-fn second_moment(cov: &[f64], mean: &[f64], s: &mut [f64]) {
-    let n = mean.len();
-    s.copy_from_slice(cov);
-    for c in 0..n {
-        for r in 0..n {
-            s[c * n + r] += mean[r] * mean[c];
-        }
     }
 }
 
@@ -744,22 +578,9 @@ pub(crate) fn band_error(
 impl ChainFilter for JointFilter {
     fn second_moments(&self, out: &mut [f64]) -> bool {
         let n = self.model.dims.n;
-        let nn = n * n;
-        match &self.moments {
-            Moments::None => return false,
-            Moments::Band { mean, cov, .. } => {
-                for (i, s) in out.chunks_exact_mut(nn).enumerate() {
-                    second_moment(cov.block(i, 0), &mean[i * n..(i + 1) * n], s);
-                }
-            }
-            Moments::Local { mean, cov, .. } => moment_blocks(out, cov, mean, n),
-            Moments::Lifted { moments, .. } => {
-                for (i, s) in out.chunks_exact_mut(nn).enumerate() {
-                    moments.second_moment(i, n, s);
-                }
-            }
-        }
-        true
+        out.chunks_exact_mut(n * n)
+            .enumerate()
+            .all(|(i, s)| self.moments.second_moment(i, n, s))
     }
 
     fn step(&mut self, y: &[f64], u: &[f64]) -> Result<()> {
