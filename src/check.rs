@@ -39,7 +39,7 @@ pub struct ModelCheck {
 /// A parameter that varies, and how.
 #[derive(Debug, Clone, Serialize)]
 pub struct Variation {
-    /// Its config key (`A`, …, `Q`, `p`).
+    /// Its config key (`A`, …, `Q`, `p`, `initial`).
     pub key: &'static str,
     pub time: bool,
     pub space: bool,
@@ -122,6 +122,11 @@ pub fn check(model: &Model) -> Result<ModelCheck> {
             let (time, space) = model.variation(key);
             (time || space).then_some(Variation { key, time, space })
         })
+        .chain((!model.initial.shared()).then_some(Variation {
+            key: "initial",
+            time: false,
+            space: true,
+        }))
         .collect();
     let joint_band = DEFAULT_BAND.min(model.subsystems - 1);
     let all = model.windows();

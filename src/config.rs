@@ -285,6 +285,20 @@ pub struct RawOverride {
     /// measurements empty and every filter takes them as gaps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub measured: Option<bool>,
+    /// These subsystems' own initial condition (at `t = 1`, so not with `steps`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub initial: Option<RawOverrideInitial>,
+}
+
+/// `initial.mean`, `initial.cov` in an override: either, or both; what is left out is the
+/// subsystem's initial condition without this override.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawOverrideInitial {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean: Option<Vec<f64>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cov: Option<RawMatrix>,
 }
 
 /// One config value given beside the file (`--set KEY=VALUE`, docs/theory.md §13): the key

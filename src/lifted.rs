@@ -393,14 +393,14 @@ pub struct LiftedMoments {
 }
 
 impl LiftedMoments {
-    /// `m(1) = [m0; …; m0]`, `P(1) = blkdiag(P0)`.
+    /// `m(1) = [m0_1; …; m0_N]`, `P(1) = blkdiag(P0_1, …, P0_N)`.
     pub fn initial(model: &Model) -> Self {
         let (n, big_n) = (model.dims.n, model.subsystems);
-        let mean = DVector::from_fn(big_n * n, |r, _| model.initial_mean[r % n]);
+        let mean = DVector::from_vec(model.initial.means());
         let mut cov = DMatrix::zeros(big_n * n, big_n * n);
         for i in 0..big_n {
             cov.view_mut((i * n, i * n), (n, n))
-                .copy_from(&model.initial_cov);
+                .copy_from(&model.initial.of(i).cov);
         }
         Self {
             next: DMatrix::zeros(big_n * n, big_n * n),

@@ -44,15 +44,17 @@ pub fn simulate(
     // Square roots of the noise covariances, one per parameter set.
     let sqrt_q: Vec<DMatrix<f64>> = model.param_sets().iter().map(|p| psd_sqrt(&p.Q)).collect();
     let sqrt_m: Vec<DMatrix<f64>> = model.param_sets().iter().map(|p| psd_sqrt(&p.M)).collect();
-    let sqrt_p0 = psd_sqrt(&model.initial_cov);
+    let sqrt_p0: Vec<DMatrix<f64>> = (model.initial.sets().iter())
+        .map(|s| psd_sqrt(&s.cov))
+        .collect();
 
     let mut x = vec![0.0; big_n * n];
     let mut x_next = vec![0.0; big_n * n];
     let mut noise = vec![0.0; n.max(q)];
-    for xi in x.chunks_mut(n) {
-        xi.copy_from_slice(model.initial_mean.as_slice());
+    for (xi, &id) in x.chunks_mut(n).zip(model.initial.ids()) {
+        xi.copy_from_slice(model.initial.sets()[id as usize].mean.as_slice());
         draw_normal(&mut rng, &mut noise[..n]);
-        mat_vec_add(xi, &sqrt_p0, &noise[..n]);
+        mat_vec_add(xi, &sqrt_p0[id as usize], &noise[..n]);
     }
     let mut u = vec![0.0; big_n * m];
     let mut z = vec![0.0; big_n * s];

@@ -423,10 +423,8 @@ pub struct ScheduledCentralized<'s> {
 
 impl<'s> ScheduledCentralized<'s> {
     pub fn new(sched: &'s CentralizedSchedule) -> Self {
-        let (n, big_n) = (sched.model.dims.n, sched.model.subsystems);
-        let x_pred: Vec<f64> = (0..big_n * n)
-            .map(|r| sched.model.initial_mean[r % n])
-            .collect();
+        let big_n = sched.model.subsystems;
+        let x_pred = sched.model.initial.means();
         Self {
             sched,
             t: 1,

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 
 use crate::config::{
     ConfigSetting, ConfigSource, InputKind, RawConfig, RawMatrix, RawOverride, RawProbability,
@@ -19,8 +19,10 @@ use crate::config::{
 use crate::error::Result;
 
 mod checker;
+mod initial;
 
 use checker::Checker;
+pub use initial::{InitialCondition, InitialConditions};
 
 /// The sizes of one subsystem (docs/theory.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -197,10 +199,8 @@ pub struct ModelData {
     pub steps: Option<usize>,
     /// Default seed.
     pub seed: u64,
-    /// `m0`.
-    pub initial_mean: DVector<f64>,
-    /// `P0`.
-    pub initial_cov: DMatrix<f64>,
+    /// `x(1, i) ~ N(m0_i, P0_i)`.
+    pub initial: InitialConditions,
     pub input: InputSpec,
     params: Vec<Params>,
     windows: Vec<Window>,
@@ -411,24 +411,6 @@ impl Model {
             }
         };
 
-        let initial_mean = match &raw.initial.mean {
-            None => DVector::zeros(n),
-            Some(v) => {
-                if v.len() != n {
-                    return Err(c.err(
-                        "initial.mean",
-                        format!("expected {n} values (n), found {}", v.len()),
-                    ));
-                }
-                for &x in v {
-                    c.finite("initial.mean", x)?;
-                }
-                DVector::from_column_slice(v)
-            }
-        };
-        let initial_cov = c.matrix("initial.cov", &raw.initial.cov, n, n, "n × n")?;
-        c.positive_semidefinite("initial.cov", &initial_cov)?;
-
         let input = Self::input_spec(&c, src, dims.m)?;
 
         let mut overrides = Vec::with_capacity(raw.overrides.len());
@@ -466,6 +448,7 @@ impl Model {
                 measured: o.measured,
             });
         }
+        let initial = InitialConditions::from_raw(&c, raw, &overrides, n, subsystems)?;
         let (params, windows) = Self::build_windows(base, &base_p, &overrides, subsystems);
 
         Ok(Model(Arc::new(ModelData {
@@ -474,8 +457,7 @@ impl Model {
             subsystems,
             steps,
             seed: raw.seed,
-            initial_mean,
-            initial_cov,
+            initial,
             input,
             params,
             windows,
@@ -760,7 +742,7 @@ mod tests {
             (loaded.subsystems, loaded.steps, loaded.seed),
             (parsed.subsystems, parsed.steps, parsed.seed)
         );
-        assert_eq!(loaded.initial_cov, parsed.initial_cov);
+        assert_eq!(loaded.initial, parsed.initial);
         assert_eq!(loaded.name, path.display().to_string());
         assert_eq!(parsed.name, "rod");
         let err = Model::from_toml_str("inline", Path::new("."), "subsystems = 0").unwrap_err();

@@ -200,7 +200,7 @@ fn full_band(model: &Model, second_moment: SecondMoment, dropouts: Dropouts) -> 
 }
 
 /// The chains the full-band comparisons run on: every shipped config, and chains of 1, 2 and
-/// 7 subsystems with overrides and inputs.
+/// 7 subsystems with overrides and inputs (and one whose subsystems start apart).
 fn full_band_models() -> Vec<(String, Model)> {
     let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
         .iter()
@@ -209,6 +209,10 @@ fn full_band_models() -> Vec<(String, Model)> {
     for big_n in [1, 2, 7] {
         models.push((format!("chain N = {big_n}"), model_from(&chain_with(big_n))));
     }
+    models.push((
+        "chain N = 7, each start its own".into(),
+        model_from(&format!("{}{}", chain_with(7), crate::initial::OWN_STARTS)),
+    ));
     models
 }
 

@@ -540,8 +540,8 @@ fn distributed_mixture_filter_for_one_subsystem_equals_a_dense_mixture_filter() 
     let prm = model.param_set(0);
     let (a, c, j, r, m, q) = (&prm.A, &prm.C, &prm.J, &prm.R, &prm.M, &prm.Q);
     let p = 0.6;
-    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
-    let mut t_cov = model.initial_cov.clone();
+    let mut x = model.initial.of(0).mean.clone();
+    let mut t_cov = model.initial.of(0).cov.clone();
     let mut dynamic = mixture_filter(&model);
     let mut fixed = two_step(
         &model,
@@ -813,8 +813,8 @@ fn known_dropout_log_likelihood_is_the_kalman_filters_for_one_subsystem() {
             ),
         ),
     ];
-    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
-    let mut p = model.initial_cov.clone();
+    let mut x = model.initial.of(0).mean.clone();
+    let mut p = model.initial.of(0).cov.clone();
     let (mut total, mut totals) = (0.0, vec![0.0; filters.len()]);
     let mut partial = 0;
     for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
@@ -868,10 +868,9 @@ pub fn dense_log_density(model: &Model, ys: &[Vec<f64>], us: &[Vec<f64>]) -> f64
     let mut mean = DVector::zeros(steps * size);
     let mut cov = DMatrix::zeros(steps * size, steps * size);
     for i in 0..big_n {
-        mean.rows_mut(i * n, n)
-            .copy_from(&DVector::from_column_slice(model.initial_mean.as_slice()));
+        mean.rows_mut(i * n, n).copy_from(&model.initial.of(i).mean);
         cov.view_mut((i * n, i * n), (n, n))
-            .copy_from(&model.initial_cov);
+            .copy_from(&model.initial.of(i).cov);
     }
     for t0 in 0..steps - 1 {
         let (a, b) = dense_lifted(model, t0 + 1);

@@ -298,6 +298,7 @@ fn model_in_code(m: f64) -> sisfilt::config::RawConfig {
             Q: None,
             p: None,
             measured: None,
+            initial: None,
         }],
     }
 }

@@ -16,7 +16,7 @@ use sisfilt::smoother::{
 };
 
 /// A small chain (N·n = 6) with inputs, Q > 0 and overrides in time and space.
-const SMALL: &str = "
+pub const SMALL: &str = "
 subsystems = 3
 steps = 12
 seed = 2
@@ -118,8 +118,12 @@ impl LiftedPrior {
                 })
             })
             .collect();
-        let mut mean = vec![DVector::from_fn(size, |r, _| model.initial_mean[r % n])];
-        let mut cov = vec![block_diag((0..big_n).map(|_| model.initial_cov.clone()))];
+        let mut mean = vec![DVector::from_fn(size, |r, _| {
+            model.initial.of(r / n).mean[r % n]
+        })];
+        let mut cov = vec![block_diag(
+            (0..big_n).map(|i| model.initial.of(i).cov.clone()),
+        )];
         for t in 1..steps {
             let uu = DVector::from_column_slice(&u[t - 1]);
             mean.push(dense_step(model, t, &mean[t - 1], &uu));
@@ -307,7 +311,7 @@ fn gap(a: &Smoothed, b: &Smoothed) -> (f64, f64) {
 /// The centralized smoother against the batch estimator on `run`, in both dropout modes
 /// (known dropouts with [`lose_some`]): the largest relative gaps in `x̂` and `P`, and that
 /// it has nothing to note.
-fn centralized_against_batch(model: &Model, run: &crate::common::Run, tolerance: f64) {
+pub fn centralized_against_batch(model: &Model, run: &crate::common::Run, tolerance: f64) {
     for known in [false, true] {
         let y = if known {
             lose_some(run, model.dims.q)
@@ -360,7 +364,8 @@ fn full_band(model: &Model, dropouts: Dropouts, second_moment: SecondMoment) -> 
 }
 
 /// The chains of the full-band comparisons: every shipped config, a small chain with
-/// overrides and inputs, and chains of 2 and 1 subsystems.
+/// overrides and inputs (also with subsystems that start apart), and chains of 2 and 1
+/// subsystems.
 fn full_band_models() -> Vec<(String, Model)> {
     let mut models: Vec<(String, Model)> = ["platoon.toml", "heat_rod.toml", "paper.toml"]
         .iter()
@@ -377,6 +382,10 @@ fn full_band_models() -> Vec<(String, Model)> {
         ),
     ));
     models.push(("N = 1".into(), one_subsystem()));
+    models.push((
+        "each start its own".into(),
+        model_from(&format!("{SMALL}{}", crate::initial::OWN_STARTS)),
+    ));
     models
 }
 
@@ -547,8 +556,8 @@ fn plain_rts(model: &Model, y: &[Vec<f64>], u: &[Vec<f64>]) -> Smoothed {
     let steps = y.len();
     // Forward: the Nahi filter with the exact moment S = P + m mᵀ (v = 0 for N = 1).
     let prm = |t: usize| model.params(t, 1);
-    let mut x = DVector::from_column_slice(model.initial_mean.as_slice());
-    let mut t_cov = model.initial_cov.clone();
+    let mut x = model.initial.of(0).mean.clone();
+    let mut t_cov = model.initial.of(0).cov.clone();
     let (mut mm, mut pm) = (x.clone(), t_cov.clone());
     let (mut xf, mut pf, mut xp, mut tp) = (vec![], vec![], vec![], vec![]);
     for t in 1..=steps {

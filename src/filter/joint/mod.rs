@@ -99,7 +99,8 @@ impl JointOptions {
     /// The loading `ε` in force for `model`: the default is 1e−9 where the prior can be
     /// singular (every `Q` zero, or an initial covariance that is not positive definite).
     pub fn loading_for(&self, model: &Model) -> f64 {
-        let singular_start = model.initial_cov.clone().cholesky().is_none();
+        let singular_start =
+            (model.initial.sets().iter()).any(|s| s.cov.clone().cholesky().is_none());
         self.loading
             .unwrap_or(if model.q_is_zero() || singular_start {
                 DEFAULT_LOADING_Q_ZERO
@@ -213,13 +214,13 @@ fn diagonal_blocks(p: &SymBand, out: &mut [f64]) {
     }
 }
 
-/// `P = blkdiag(P0)` on a band of width `k`.
+/// `P = blkdiag(P0_1, …, P0_N)` on a band of width `k`.
 fn initial_band(model: &Model, k: usize) -> SymBand {
     let n = model.dims.n;
     let mut p = SymBand::zeros(model.subsystems, n, k);
     for i in 0..model.subsystems {
         p.block_mut(i, 0)
-            .copy_from_slice(model.initial_cov.as_slice());
+            .copy_from_slice(model.initial.of(i).cov.as_slice());
     }
     p
 }
@@ -290,7 +291,7 @@ impl JointFilter {
         let a_eff = AEffBand::new(model, 1, &solver, opts.band_tol, opts.max_memory)?;
         Self::check_memory(model, &opts, a_eff.half_width())?;
         let w = (k + 2 * a_eff.half_width()).min(big_n - 1);
-        let mean: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
+        let mean = model.initial.means();
         let moments = match (
             reads_second_moment(opts.dropouts, opts.update),
             opts.second_moment,
@@ -308,9 +309,7 @@ impl JointFilter {
             },
             (true, SecondMoment::Local) => Moments::Local {
                 mean: mean.clone(),
-                cov: (0..big_n)
-                    .flat_map(|_| model.initial_cov.as_slice().iter().copied())
-                    .collect(),
+                cov: model.initial.covs(),
                 scratch: vec![0.0; n * n],
                 ws: Box::new(nahi::Workspace::new(n, q)),
             },

@@ -87,7 +87,7 @@ impl<'s> ScheduledJoint<'s> {
     pub fn new(sched: &'s JointSchedule) -> Result<Self> {
         let model = &sched.model;
         let (n, q, big_n) = (model.dims.n, model.dims.q, model.subsystems);
-        let x: Vec<f64> = (0..big_n * n).map(|r| model.initial_mean[r % n]).collect();
+        let x = model.initial.means();
         Ok(Self {
             sched,
             t: 1,

@@ -66,8 +66,12 @@ impl Sharing {
     };
 
     fn of(model: &Model, opts: &TwoStepOptions) -> Sharing {
-        // The mixture update's covariance depends on each subsystem's reading.
-        if opts.dropouts == Dropouts::Known || opts.update == Update::Mixture {
+        // The mixture update's covariance depends on each subsystem's reading, and every
+        // recursion on the subsystem's own start.
+        if opts.dropouts == Dropouts::Known
+            || opts.update == Update::Mixture
+            || !model.initial.shared()
+        {
             return Sharing::NONE;
         }
         // Compared by value: two parameter sets may hold the same matrices.
@@ -180,30 +184,24 @@ impl<K: LocalKernel> TwoStepFilter<K> {
                 "--second-moment band belongs to the joint filter (--filter joint); the distributed filter takes local, paper or lifted".into(),
             ));
         }
-        let m0 = model.initial_mean.as_slice();
-        let p0 = model.initial_cov.as_slice();
-        let x_pred: Vec<f64> = m0.iter().copied().cycle().take(big_n * n).collect();
-        let t_pred: Vec<f64> = p0.iter().copied().cycle().take(big_n * n * n).collect();
-        // local: Pₓ(1) = P0; paper: S(1) = P0 + m0 m0ᵀ.
-        let mut moment_one = p0.to_vec();
-        if opts.second_moment == SecondMoment::Paper {
-            for r in 0..n {
-                for c in 0..n {
-                    moment_one[c * n + r] += m0[r] * m0[c];
-                }
+        let x_pred = model.initial.means();
+        let t_pred = model.initial.covs();
+        // local: Pₓ(1) = P0; paper: S(1) = P0 + m0 m0ᵀ (per subsystem).
+        let moment_of = |mean: &[f64], cov: &[f64]| {
+            let mut moment = cov.to_vec();
+            if opts.second_moment == SecondMoment::Paper {
+                moment_blocks(&mut moment, cov, mean, n);
             }
-        }
+            moment
+        };
+        let first = model.initial.of(0);
+        let moment_one = moment_of(first.mean.as_slice(), first.cov.as_slice());
         let sharing = Sharing::of(model, &opts);
         let uses_second_moment = reads_second_moment(opts.dropouts, opts.update);
         let per_subsystem_moment =
             uses_second_moment && !sharing.moment && opts.second_moment != SecondMoment::Lifted;
         let moment_cov = if per_subsystem_moment {
-            moment_one
-                .iter()
-                .copied()
-                .cycle()
-                .take(big_n * n * n)
-                .collect()
+            moment_of(&x_pred, &t_pred)
         } else {
             Vec::new()
         };
@@ -229,8 +227,8 @@ impl<K: LocalKernel> TwoStepFilter<K> {
             t_pred,
             moment_cov,
             moment_shared: moment_one,
-            t_shared: p0.to_vec(),
-            p_shared: p0.to_vec(),
+            t_shared: first.cov.as_slice().to_vec(),
+            p_shared: first.cov.as_slice().to_vec(),
             gain,
             sharing,
             lifted,
