@@ -157,8 +157,92 @@ impl<'de> Deserialize<'de> for RawProbability {
 #[serde(deny_unknown_fields)]
 pub struct RawInitial {
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub mean: Option<Vec<f64>>,
+    pub mean: Option<RawMean>,
     pub cov: RawMatrix,
+}
+
+/// `mean = [0.0, 1.0]` (every subsystem's) or `mean = [[0.0, 1.0], [0.2, 1.1], …]` (one per
+/// subsystem, as a recording's first readings give them).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum RawMean {
+    All(Vec<f64>),
+    PerSubsystem(Vec<Vec<f64>>),
+}
+
+/// One entry of a mean: a number, or one subsystem's list of numbers.
+enum MeanEntry {
+    Number(f64),
+    List(Vec<f64>),
+}
+
+impl<'de> Deserialize<'de> for MeanEntry {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = MeanEntry;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a number, or a list of numbers (one subsystem's mean)")
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Self::Value, E> {
+                Ok(MeanEntry::Number(v))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Self::Value, E> {
+                Ok(MeanEntry::Number(v as f64))
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<Self::Value, E> {
+                Ok(MeanEntry::Number(v as f64))
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut v = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(1 << 16));
+                while let Some(x) = seq.next_element::<f64>()? {
+                    v.push(x);
+                }
+                Ok(MeanEntry::List(v))
+            }
+        }
+        de.deserialize_any(Visitor)
+    }
+}
+
+/// By hand, as [`RawProbability`], so that anything else is refused saying what was expected.
+impl<'de> Deserialize<'de> for RawMean {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = RawMean;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a list of n numbers, or a list of such lists, one per subsystem")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<Self::Value, A::Error> {
+                use serde::de::Error;
+                let (mut numbers, mut lists) = (Vec::new(), Vec::new());
+                while let Some(entry) = seq.next_element::<MeanEntry>()? {
+                    match entry {
+                        MeanEntry::Number(x) => numbers.push(x),
+                        MeanEntry::List(v) => lists.push(v),
+                    }
+                    if !numbers.is_empty() && !lists.is_empty() {
+                        return Err(A::Error::custom(
+                            "expected numbers or lists of numbers (one per subsystem), not both",
+                        ));
+                    }
+                }
+                Ok(if lists.is_empty() {
+                    RawMean::All(numbers)
+                } else {
+                    RawMean::PerSubsystem(lists)
+                })
+            }
+        }
+        de.deserialize_any(Visitor)
+    }
 }
 
 /// `[input]`: how `u(t,i)` is generated.

@@ -1,6 +1,7 @@
 //! The initial conditions `x(1, i) ~ N(m0_i, P0_i)` (docs/theory.md §1): `[initial]` for every
-//! subsystem, and an override's `initial.mean`, `initial.cov` for the subsystems it covers
-//! (a recording starts from its first readings, which differ along the chain).
+//! subsystem (its `mean` one list, or one list per subsystem), and an override's
+//! `initial.mean`, `initial.cov` for the subsystems it covers (a recording starts from its
+//! first readings, which differ along the chain).
 
 use std::collections::HashMap;
 
@@ -8,7 +9,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::Override;
 use super::checker::Checker;
-use crate::config::{RawConfig, RawMatrix};
+use crate::config::{RawConfig, RawMatrix, RawMean};
 use crate::error::Result;
 
 /// The initial condition of one subsystem or more: `x(1, i) ~ N(mean, cov)`.
@@ -53,16 +54,49 @@ impl InitialConditions {
             c.positive_semidefinite(key, &cov)?;
             Ok(cov)
         };
-        let base = InitialCondition {
-            mean: match &raw.initial.mean {
-                None => DVector::zeros(n),
-                Some(v) => mean("initial.mean", v)?,
+        let base_cov = cov("initial.cov", &raw.initial.cov)?;
+        let mut conditions = match &raw.initial.mean {
+            None | Some(RawMean::All(_)) => InitialConditions {
+                sets: vec![InitialCondition {
+                    mean: match &raw.initial.mean {
+                        Some(RawMean::All(v)) => mean("initial.mean", v)?,
+                        _ => DVector::zeros(n),
+                    },
+                    cov: base_cov,
+                }],
+                ids: vec![0; subsystems],
             },
-            cov: cov("initial.cov", &raw.initial.cov)?,
-        };
-        let mut conditions = InitialConditions {
-            sets: vec![base],
-            ids: vec![0; subsystems],
+            Some(RawMean::PerSubsystem(means)) => {
+                if means.len() != subsystems {
+                    return Err(c.err(
+                        "initial.mean",
+                        format!(
+                            "expected {n} values, or {subsystems} lists of {n} values (one per subsystem), found {} lists",
+                            means.len()
+                        ),
+                    ));
+                }
+                // Subsystems with the same mean share a set (by the bits of its numbers).
+                let mut conditions = InitialConditions {
+                    sets: Vec::new(),
+                    ids: Vec::with_capacity(subsystems),
+                };
+                let mut seen: HashMap<Vec<u64>, u32> = HashMap::new();
+                for (i, v) in means.iter().enumerate() {
+                    let key = format!("initial.mean[{}]", i + 1);
+                    let m = mean(&key, v)?;
+                    let bits = v.iter().map(|x| x.to_bits()).collect();
+                    let id = *seen.entry(bits).or_insert_with(|| {
+                        conditions.sets.push(InitialCondition {
+                            mean: m,
+                            cov: base_cov.clone(),
+                        });
+                        (conditions.sets.len() - 1) as u32
+                    });
+                    conditions.ids.push(id);
+                }
+                conditions
+            }
         };
         for (k, (o, checked)) in raw.overrides.iter().zip(overrides).enumerate() {
             let Some(initial) = &o.initial else { continue };

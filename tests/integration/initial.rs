@@ -1,15 +1,16 @@
-//! Initial conditions per subsystem (an override's `initial.mean`, `initial.cov`): read as
+//! Initial conditions per subsystem (an override's `initial.mean`, `initial.cov`, or a mean per
+//! subsystem in `[initial]`): read as
 //! written, refused with the key named, drawn by `simulate`, and taken by every filter as the
 //! dense references written in the tests take them (the log density of all measurements, the
 //! batch smoother, the centralized filter at full band, a decoupled chain's own filters).
 
 use std::path::Path;
 
-use sisfilt::filter::{CentralizedFilter, ChainFilter, JointFilter, JointOptions, SecondMoment};
+use sisfilt::filter::{ChainFilter, JointFilter, JointOptions, SecondMoment};
 use sisfilt::model::Model;
 
 use crate::common::{model_from, simulate_run};
-use crate::reference_filters::{CHAIN, dense_log_density, lose_some};
+use crate::reference_filters::{CHAIN, assert_centralized_known_log_likelihood_is_dense};
 
 /// Overrides that start the subsystems of a chain of at least 3 (`n = 2`) apart: 2 and 3 from
 /// another mean, then 1 and 3 with another covariance (the later override wins, and keeps
@@ -54,6 +55,58 @@ fn each_subsystem_starts_from_what_its_overrides_say() {
     ));
     assert!(all.initial.shared());
     assert_eq!(all.initial.of(3).mean.as_slice(), &[0.0, 0.0]);
+}
+
+/// `[initial] mean` as one list per subsystem is the same chain as one override per subsystem.
+#[test]
+fn a_mean_per_subsystem_is_one_override_per_subsystem() {
+    let means = [[1.0, -0.5], [2.0, 0.0], [2.0, 0.0], [-1.0, 0.25]];
+    let listed = CHAIN.replace(
+        "mean = [1.0, -0.5]",
+        "mean = [[1.0, -0.5], [2.0, 0.0], [2.0, 0.0], [-1.0, 0.25]]",
+    );
+    let mut overridden = CHAIN.to_string();
+    for (i, m) in means.iter().enumerate() {
+        overridden += &format!(
+            "\n[[override]]\nsubsystems = [{0}, {0}]\ninitial.mean = [{1:?}, {2:?}]\n",
+            i + 1,
+            m[0],
+            m[1]
+        );
+    }
+    let (a, b) = (model_from(&listed), model_from(&overridden));
+    assert_eq!(a.initial, b.initial);
+    assert_eq!(a.initial.sets().len(), 3);
+    for (i, m) in means.iter().enumerate() {
+        assert_eq!(a.initial.of(i).mean.as_slice(), m);
+    }
+    assert_eq!(simulate_run(&a, 4).x, simulate_run(&b, 4).x);
+    let cases = [
+        (
+            "mean = [[1.0, -0.5], [2.0, 0.0]]",
+            "initial.mean",
+            "4 lists of 2 values (one per subsystem), found 2 lists",
+        ),
+        (
+            "mean = [[1.0, -0.5], [2.0, 0.0], [2.0], [0.0, 0.0]]",
+            "initial.mean[3]",
+            "expected 2 values",
+        ),
+    ];
+    for (mean, key, what) in cases {
+        let text = CHAIN.replace("mean = [1.0, -0.5]", mean);
+        let err = Model::from_toml_str("chain.toml", Path::new("."), &text).unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(msg.starts_with(&format!("chain.toml: {key}: ")), "{msg}");
+        assert!(msg.contains(what), "{msg}");
+        assert_eq!(err.exit_code(), 2);
+    }
+    let mixed = CHAIN.replace("mean = [1.0, -0.5]", "mean = [1.0, [2.0, 0.0]]");
+    let msg = format!(
+        "{:#}",
+        Model::from_toml_str("chain.toml", Path::new("."), &mixed).unwrap_err()
+    );
+    assert!(msg.contains("not both"), "{msg}");
 }
 
 /// Each refusal names the file and the key, exit code 2.
@@ -108,21 +161,7 @@ fn simulate_draws_each_subsystem_from_its_own_start() {
 /// received measurements, whose prior the test builds from each subsystem's own start.
 #[test]
 fn centralized_log_likelihood_is_the_dense_density_with_own_starts() {
-    let model = model_from(&format!("{CHAIN}{OWN_STARTS}"));
-    let run = simulate_run(&model, 5);
-    let mut filter = CentralizedFilter::new(&model, true, 100).unwrap();
-    let (mut loglik, mut ys) = (0.0, Vec::new());
-    for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
-        let y = lose_some(y, t0 + 1);
-        filter.step(&y, u).unwrap();
-        loglik += filter.log_likelihood().unwrap();
-        ys.push(y);
-    }
-    let dense = dense_log_density(&model, &ys, &run.u);
-    assert!(
-        (loglik - dense).abs() < 1e-9 * dense.abs(),
-        "filter {loglik} vs dense {dense}"
-    );
+    assert_centralized_known_log_likelihood_is_dense(&model_from(&format!("{CHAIN}{OWN_STARTS}")));
 }
 
 /// The centralized smoother against the batch estimator (all states conditioned on all

@@ -934,9 +934,14 @@ pub fn dense_log_density(model: &Model, ys: &[Vec<f64>], us: &[Vec<f64>]) -> f64
 /// measurements at once ([`dense_log_density`]).
 #[test]
 fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
-    let model = model_from(CHAIN);
-    let run = simulate_run(&model, 5);
-    let mut filter = CentralizedFilter::new(&model, true, 100).unwrap();
+    assert_centralized_known_log_likelihood_is_dense(&model_from(CHAIN));
+}
+
+/// The centralized known-dropout filter's log-likelihood on a run of `model` with
+/// [`lose_some`]'s losses, against [`dense_log_density`] (relative 1e-9).
+pub fn assert_centralized_known_log_likelihood_is_dense(model: &Model) {
+    let run = simulate_run(model, 5);
+    let mut filter = CentralizedFilter::new(model, true, 100).unwrap();
     let mut loglik = 0.0;
     let mut ys = Vec::new();
     for (t0, (y, u)) in run.y.iter().zip(&run.u).enumerate() {
@@ -945,7 +950,7 @@ fn centralized_known_log_likelihood_is_the_dense_density_of_all_measurements() {
         loglik += filter.log_likelihood().unwrap();
         ys.push(y);
     }
-    let dense = dense_log_density(&model, &ys, &run.u);
+    let dense = dense_log_density(model, &ys, &run.u);
     assert!(
         (loglik - dense).abs() < 1e-9 * dense.abs(),
         "filter {loglik} vs dense {dense}"
