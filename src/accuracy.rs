@@ -243,7 +243,7 @@ pub fn chi2_mean_band(k: u64) -> [f64; 2] {
         return [f64::NAN, f64::NAN];
     }
     let a = 2.0 / (9.0 * k as f64);
-    let z = 1.959_963_984_540_054;
+    let z = Z_95;
     [
         (1.0 - a - z * a.sqrt()).max(0.0).powi(3),
         (1.0 - a + z * a.sqrt()).powi(3),
@@ -368,6 +368,56 @@ impl DetectionReport {
     /// False alarms, per cent of the received measurements.
     pub fn false_alarm_percent(&self) -> f64 {
         100.0 * self.false_alarms as f64 / self.received.max(1) as f64
+    }
+}
+
+/// The 97.5 % point of the standard normal distribution.
+pub(crate) const Z_95: f64 = 1.959_963_984_540_054;
+
+/// How the held-out readings compare with the run's estimates and with the interpolation
+/// (docs/theory.md §17, [`crate::run::hold_out`]). Every figure is over the same readings: those whose sensor has a
+/// reading the run saw, before or after, to interpolate from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutReport {
+    /// The share of readings asked for, and the seed of the draw.
+    pub share: f64,
+    pub seed: u64,
+    /// The readings held out and scored.
+    pub readings: usize,
+    /// Held out but not scored: their sensor has no reading the run saw.
+    pub unscored: usize,
+    /// `√ mean (y − J x̂ − R u)²`: the run's estimates' error on the readings they did not see.
+    pub rmse: f64,
+    /// `√ mean (y − ỹ)²`, `ỹ` the linear interpolation in time of the same sensor's readings
+    /// the run saw (the nearest one where there is none on one side).
+    pub interpolation_rmse: f64,
+    /// `mean (y − J x̂ − R u)² / (J P Jᵀ + M)_kk`: 1 where the claimed variance is right.
+    pub standardised: f64,
+    /// The 95 % band of `standardised` if its terms were independent `χ²₁` (they are
+    /// correlated in time, so only indicative).
+    pub band: (f64, f64),
+}
+
+impl HeldOutReport {
+    /// One line: what was held out and how it scored.
+    pub fn summary(&self) -> String {
+        let band = self.band;
+        let unscored = match self.unscored {
+            0 => String::new(),
+            k => format!(" ({k} more left unscored: nothing to interpolate from)"),
+        };
+        format!(
+            "{} readings ({:.1} %, seed {}) kept from the filter{unscored}: RMSE {:.4e} against {:.4e} for linear interpolation in time ({:.3}×); mean standardised square {:.4} (95 % band of an honest variance [{:.4}, {:.4}] if the terms were independent)",
+            self.readings,
+            100.0 * self.share,
+            self.seed,
+            self.rmse,
+            self.interpolation_rmse,
+            self.rmse / self.interpolation_rmse,
+            self.standardised,
+            band.0,
+            band.1
+        )
     }
 }
 

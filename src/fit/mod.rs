@@ -24,6 +24,7 @@ use argmin::solver::quasinewton::LBFGS;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
+use crate::accuracy::Z_95;
 use crate::config::RawConfig;
 use crate::error::{Error, Result};
 use crate::filter::{Dropouts, FilterKind, Update};
@@ -55,8 +56,6 @@ const ON_BOUNDARY: f64 = 1e-3;
 const CLIFF: f64 = 1e6;
 /// L-BFGS history length.
 const LBFGS_MEMORY: usize = 10;
-/// The 97.5 % point of the standard normal distribution.
-const Z_95: f64 = 1.959_963_984_540_054;
 
 /// A fit that cannot run for a reason its settings name (exit 2 on the command line).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -87,7 +87,10 @@ impl Findings {
     ) -> Self {
         let correlation = pooled.and_then(|p| {
             let guarded = z * p.spatial_factor.map_or(1.0, |l| l.max(1.0).sqrt());
-            (p.z_w.abs() > guarded && p.rho_w.abs() > RHO_MIN).then_some(p.z_w > 0.0)
+            // A lag 1 beyond the threshold against the sign of the weighted sum: correlations
+            // of both signs (an oscillation), which no noise level makes.
+            let mixed = p.z1.abs() > guarded && (p.z1 > 0.0) != (p.z_w > 0.0);
+            (p.z_w.abs() > guarded && p.rho_w.abs() > RHO_MIN && !mixed).then_some(p.z_w > 0.0)
         });
         Self {
             z,
@@ -298,7 +301,7 @@ impl InnovationReport {
                             "some subsystems stand out from the others: {}",
                             named.join(", ")
                         );
-                        (figures, "a faulty sensor, or M wrong there".into())
+                        (figures, "a faulty sensor there, or noise (M or Q) that differs there from the rest of the chain: an override gives those subsystems their own".into())
                     }
                     Cause::Form => self.form_warning(&nis, &sign),
                 };

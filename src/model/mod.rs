@@ -702,6 +702,16 @@ impl Model {
             && self.params.iter().any(|p| p.D.amax() > 0.0)
     }
 
+    /// True when a reading may be lost: `p(t, i) < 1` for some subsystem with a sensor. Only
+    /// then does the unknown-dropout filter weigh the second moment `S` (its
+    /// `R_eff = M + p(1−p) J S Jᵀ`, docs/theory.md §3, §4), and only then does the chain's
+    /// stability concern it.
+    pub fn loses_readings(&self) -> bool {
+        self.windows
+            .iter()
+            .any(|w| w.p.iter().zip(&w.measured).any(|(&p, &m)| m && p < 1.0))
+    }
+
     /// True when every process noise covariance `Q` is zero (the paper's setting).
     pub fn q_is_zero(&self) -> bool {
         self.params.iter().all(|p| p.Q.amax() == 0.0)

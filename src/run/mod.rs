@@ -8,6 +8,7 @@
 //!   smoother, which keeps its forward pass);
 //! - [`estimate`]: the run over arrays in memory, into arrays (a thin layer over [`stream`]).
 
+pub mod hold_out;
 mod score;
 mod source;
 pub mod spec;
@@ -25,6 +26,7 @@ use crate::model::Model;
 use crate::smoother::{Smoother, memory_bytes};
 use crate::stability::{RadiusEffort, SpectralRadius, Stability, spectral_radius};
 
+pub use hold_out::{HoldOut, HoldOutError, stream_held_out};
 use score::Scores;
 pub use source::{
     ArraySource, FileSource, ReadAhead, ReaderTruth, SliceTruth, StepSource, TruthSource, read_all,
@@ -223,7 +225,8 @@ fn innovation_check(model: &Model, spec: &CheckedSpec) -> InnovationCheck {
 }
 
 /// The warnings a run of `spec` on `model` deserves before it starts: a distributed filter
-/// whose covariance cannot be trusted, an unstable chain.
+/// whose covariance cannot be trusted, a chain that is not stable where readings may be lost
+/// (with `p = 1` everywhere, or known dropouts, no filter weighs the second moment).
 pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
     let mut notes = Vec::new();
     if spec.filter_kind() == FilterKind::Distributed && model.q_is_zero() && model.is_coupled() {
@@ -233,6 +236,7 @@ pub fn advice(spec: &CheckedSpec, model: &Model) -> Result<Vec<Note>> {
         }
     }
     if spec.dropouts() == Dropouts::Unknown
+        && model.loses_readings()
         && model.subsystems * model.dims.n <= STABILITY_CHECK_MAX
     {
         // One estimate per chain, which windows differing only in p or sensors share.

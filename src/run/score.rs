@@ -60,6 +60,7 @@ impl Scores {
             detection: arrival.then(|| self.detection.report()),
             loglik: None,
             innovations: None,
+            held_out: None,
         })
     }
 }

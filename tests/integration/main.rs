@@ -19,6 +19,7 @@ mod fit;
 mod fit_band;
 mod flags;
 mod gaps;
+mod hold_out;
 mod initial;
 mod innovations;
 mod joint_filter;

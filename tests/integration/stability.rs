@@ -147,3 +147,31 @@ fn check_and_estimate_say_the_same() {
         assert_eq!(warning(&run.stderr), from_check, "{name}");
     }
 }
+
+/// Where no reading can be lost (`p = 1`), no filter weighs the second moment that a
+/// conserving or unstable chain grows: `check` prints the radius and neither it nor a run
+/// warns (docs/theory.md §3); the same chains with `p = 0.8` are warned of above.
+#[test]
+fn without_losses_the_radius_is_printed_and_nothing_warns() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, text) in [
+        ("conserving", heat_chain(30, 0.0)),
+        ("above", heat_chain(30, 1e-3)),
+    ] {
+        let text = text.replace("p = 0.8", "p = 1.0");
+        let config = write_file(dir.path(), &format!("{name}.toml"), &text);
+        let check = sisfilt().arg("check").arg(&config).output().unwrap();
+        assert!(check.status.success());
+        let stdout = String::from_utf8(check.stdout).unwrap();
+        assert!(
+            stdout.contains("spectral radius of A_eff 1.00"),
+            "{name}: {stdout}"
+        );
+        let run = estimate_simulated(dir.path(), &config, name);
+        assert!(run.status.success());
+        for stderr in [check.stderr, run.stderr] {
+            let stderr = String::from_utf8(stderr).unwrap();
+            assert!(!stderr.contains("spectral radius"), "{name}: {stderr}");
+        }
+    }
+}

@@ -74,12 +74,14 @@ fn verdict_of(
 
 /// Each rule of the verdict's table, and the portmanteau's own cause: a lag-1
 /// autocorrelation of +0.22 and a lag-2 one of −0.24 that cancel in the Bartlett-weighted sum
-/// (`c = [1, 0.3857, −0.3]`: `γ₁ + 0.9 γ₂ = 0`) are the model's form, named with their lags.
+/// (`c = [1, 0.3857, −0.3]`: `γ₁ + 0.9 γ₂ = 0`) are the model's form, named with their lags;
+/// so is an oscillation whose lag 1 is positive and whose weighted sum is negative (a
+/// thermistor chain's internal waves), which no noise level makes.
 #[test]
 fn each_rule_names_its_cause_on_constructed_innovations() {
     // (name, scale, MA coefficients, AR coefficient, the causes)
     type Case<'a> = (&'a str, f64, &'a [f64], f64, &'a [Cause]);
-    let cases: [Case; 8] = [
+    let cases: [Case; 9] = [
         ("white", 1.0, &[1.0], 0.0, &[]),
         ("correlated", 1.0, &[1.0], 0.3, &[Cause::QTooSmall]),
         ("alternating", 1.0, &[1.0], -0.3, &[Cause::QTooLarge]),
@@ -88,6 +90,14 @@ fn each_rule_names_its_cause_on_constructed_innovations() {
         ("small, alternating", 0.7, &[1.0], -0.3, &[Cause::QTooLarge]),
         ("small, correlated", 0.7, &[1.0], 0.3, &[Cause::MTooLarge]),
         ("small, white", 0.7, &[1.0], 0.0, &[Cause::MOrQTooLarge]),
+        // γ₁ = +0.3, γ₂ = −0.59, γ₃ = −0.3: the weighted sum is negative, lag 1 positive.
+        (
+            "oscillating",
+            1.0,
+            &[1.0, 0.3, -0.5, -0.3],
+            0.0,
+            &[Cause::Form],
+        ),
     ];
     for (name, scale, ma, phi, want) in cases {
         let (causes, _) = verdict_of(50, 400, scale, ma, phi);

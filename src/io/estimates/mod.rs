@@ -8,7 +8,7 @@ use std::io::Write;
 
 use serde::{Deserialize, Serialize};
 
-use crate::accuracy::{AccuracyReport, DetectionReport};
+use crate::accuracy::{AccuracyReport, DetectionReport, HeldOutReport};
 use crate::error::{Error, Result};
 use crate::innovations::InnovationReport;
 use crate::linalg::band::SymBand;
@@ -171,6 +171,10 @@ pub struct EstimatesSummary {
     /// Whether the measurements fit the model (docs/theory.md §14).
     #[serde(default)]
     pub innovations: Option<InnovationReport>,
+    /// With readings held out of the run: how its estimates predicted them (docs/theory.md
+    /// §17); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out: Option<HeldOutReport>,
 }
 
 /// A whole estimates JSON file: the metadata, the columns, the rows (`null` for a missing
