@@ -27,6 +27,7 @@ mod plot_cli;
 mod properties;
 mod python_files;
 mod python_package;
+mod real_data;
 mod reference_filters;
 mod run_api;
 mod settings;
