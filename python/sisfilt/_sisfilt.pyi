@@ -40,6 +40,7 @@ class Estimates:
     nis: np.ndarray
     loglik: Optional[float]
     innovations: dict
+    held_out: Optional[dict]
     notes: list
     kind: str
     timings: dict
@@ -96,6 +97,8 @@ def estimate(
     loading: Optional[float] = None,
     max_lifted: int = ...,
     max_memory: Optional[int] = None,
+    hold_out: Optional[float] = None,
+    seed: int = 1,
 ) -> Estimates: ...
 def fit(
     model: Model,

@@ -431,6 +431,8 @@ struct Estimates {
     /// The innovation check (docs/theory.md §14), converted to a dict when first read: with
     /// a figure per subsystem it is the largest thing to convert, and few calls read it.
     innovations: Option<sisfilt::innovations::InnovationReport>,
+    /// With `hold_out`: the scores on the readings kept from the filter (docs/theory.md §17).
+    held_out: Option<sisfilt::accuracy::HeldOutReport>,
     #[pyo3(get)]
     notes: Vec<String>,
     /// What the rows hold: `filtered`, `predicted` or `smoothed`.
@@ -450,6 +452,14 @@ impl Estimates {
     #[getter]
     fn innovations<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_python(py, &self.innovations)
+    }
+
+    /// With `hold_out`, the scores on the readings kept from the filter as a dict (the
+    /// JSON's `held_out`: `readings`, `rmse`, `interpolation_rmse`, `standardised`, …);
+    /// else None.
+    #[getter]
+    fn held_out<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &self.held_out)
     }
 
     /// The columns of the estimates CSV (`t,i,x1..xn,P1_1,P1_2..Pn_n`, then `arrival` and
@@ -519,7 +529,7 @@ impl Estimates {
     model, y, u = None, *, filter = "distributed", update = "linear", dropouts = "unknown",
     smooth = false, predicted = false, paper = false, solver = None, second_moment = None,
     interconnect_from = None, band = None, band_tol = None, loading = None,
-    max_lifted = DEFAULT_MAX_LIFTED, max_memory = None
+    max_lifted = DEFAULT_MAX_LIFTED, max_memory = None, hold_out = None, seed = 1
 ))]
 #[allow(clippy::too_many_arguments)]
 fn estimate(
@@ -541,8 +551,12 @@ fn estimate(
     loading: Option<f64>,
     max_lifted: usize,
     max_memory: Option<u64>,
+    hold_out: Option<f64>,
+    seed: u64,
 ) -> PyResult<Estimates> {
     let spec = RunSpec {
+        hold_out,
+        hold_out_seed: seed,
         band,
         band_tol,
         loading,
@@ -584,6 +598,7 @@ fn estimate(
         nis: array(py, run.nis, &[steps, big_n])?.unbind(),
         loglik: run.report.summary.loglik,
         innovations: run.report.summary.innovations,
+        held_out: run.report.summary.held_out,
         notes: run.notes.iter().map(ToString::to_string).collect(),
         kind: to_python(py, &spec.output())?.extract()?,
         timings: {

@@ -101,6 +101,23 @@ def test_loglik_and_innovations_equal_the_command_lines_json(cli, platoon_run):
     assert all(s >= 0 for s in phases) and sum(phases) <= est.timings["run"]
 
 
+def test_hold_out_equals_the_command_lines_json(cli, platoon_run):
+    d = platoon_run
+    out = cli("estimate", "--config", config("platoon.toml"), "--meas", "gaps.csv", "--inputs",
+              "inputs.csv", "--filter", "joint", "--smooth", "--hold-out", "0.2", "--seed", "4",
+              "--format", "json", cwd=d)
+    doc = json.loads(out.stdout)
+    y, u = arrays(d, "gaps.csv")
+    model = sisfilt.Model.from_toml(config("platoon.toml"))
+    est = sisfilt.estimate(model, y, u, filter="joint", smooth=True, hold_out=0.2, seed=4)
+    assert est.held_out == doc["held_out"] and est.held_out["readings"] > 0
+    assert sisfilt.estimate(model, y, u).held_out is None
+    with pytest.raises(ValueError, match=r"hold_out = 1\.5: expected a share above 0 and below 1"):
+        sisfilt.estimate(model, y, u, hold_out=1.5)
+    with pytest.raises(ValueError, match="hold_out and predicted exclude each other"):
+        sisfilt.estimate(model, y, u, hold_out=0.1, predicted=True)
+
+
 def test_simulate_equals_the_command_line(cli, tmp_path):
     cli("simulate", config("heat_rod.toml"), "--out", tmp_path, "--steps", 30, "--seed", 5,
         cwd=tmp_path)

@@ -18,8 +18,8 @@ use sisfilt::io::estimates::{
 use sisfilt::io::{Output, Role, RunRecord, StepLayout, check_files, folder_of};
 use sisfilt::messages::{info, warn};
 use sisfilt::run::{
-    CheckedSpec, EstimateSink, FileSource, HoldOut, Note, ReadAhead, ReaderTruth, RunSpec,
-    StepEstimates, StepSource, Timings, TruthSource, stream_held_out,
+    CheckedSpec, EstimateSink, FileSource, Note, ReadAhead, ReaderTruth, RunSpec, StepEstimates,
+    StepSource, Timings, TruthSource,
 };
 
 use super::choice::choice;
@@ -108,23 +108,13 @@ pub struct EstimateArgs {
     /// Keep this share of the readings (0 < SHARE < 1, drawn at random) from the filter and
     /// score the estimates on them: their RMSE against that of linear interpolation in time,
     /// and whether the claimed variance is right (a `held out:` line; docs/theory.md §17).
-    #[arg(long, value_name = "SHARE", value_parser = parse_share, conflicts_with = "predicted")]
+    #[arg(long, value_name = "SHARE")]
     pub hold_out: Option<f64>,
     /// Seed of the draw of --hold-out.
     #[arg(long, default_value_t = 1, requires = "hold_out")]
     pub seed: u64,
     #[command(flatten)]
     pub set: SetArgs,
-}
-
-/// A share strictly between 0 and 1 (`--hold-out`).
-fn parse_share(text: &str) -> Result<f64, String> {
-    let share: f64 = text
-        .parse()
-        .map_err(|_| format!("expected a number above 0 and below 1, found `{text}`"))?;
-    sisfilt::run::HoldOut::new(share, 0)
-        .map(|_| share)
-        .map_err(|_| format!("expected a number above 0 and below 1, found {text}"))
 }
 
 pub(super) fn parse_max_memory(text: &str) -> Result<u64, String> {
@@ -150,6 +140,8 @@ impl EstimateArgs {
             max_lifted: self.max_lifted,
             max_memory: self.max_memory,
             nis_column: self.nis,
+            hold_out: self.hold_out,
+            hold_out_seed: self.seed,
         };
         Ok(spec.check().map_err(in_flag_words)?)
     }
@@ -302,14 +294,13 @@ pub fn run(args: &EstimateArgs) -> Result<()> {
         false => Box::new(files),
     };
     let mut truth = truth.map(ReaderTruth);
-    let truth = truth.as_mut().map(|t| t as &mut dyn TruthSource);
-    let report = match args.hold_out {
-        Some(share) => {
-            let hold = HoldOut::new(share, args.seed)?;
-            stream_held_out(model, &spec, &hold, source.as_mut(), truth, &mut sink)
-        }
-        None => sisfilt::run::stream(model, &spec, source.as_mut(), truth, &mut sink),
-    }
+    let report = sisfilt::run::stream(
+        model,
+        &spec,
+        source.as_mut(),
+        truth.as_mut().map(|t| t as &mut dyn TruthSource),
+        &mut sink,
+    )
     .map_err(in_flag_words)?;
     let steps = report.steps;
     if !smoothed {

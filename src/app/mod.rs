@@ -186,6 +186,10 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
         }
         Error::Spec(SpecError::PaperMomentInJoint) => "--second-moment paper belongs to the distributed filter; the joint filter takes band, lifted or local".into(),
         Error::Spec(SpecError::SmoothAndPredicted) => "--smooth and --predicted exclude each other".into(),
+        Error::Spec(SpecError::HoldOutShare(share)) => {
+            format!("--hold-out {share}: expected a share above 0 and below 1")
+        }
+        Error::Spec(SpecError::HoldOutPredicted) => "--hold-out and --predicted exclude each other: held-out readings are scored against the estimate of their own step, and row t of --predicted is that of t + 1".into(),
         Error::Spec(SpecError::NotFiniteNonNegative { setting, value }) => {
             format!("{} {value}: expected a finite number ≥ 0", flag(setting))
         }

@@ -13,11 +13,11 @@ use std::cell::RefCell;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::CheckedSpec;
 use super::{EstimateSink, Note, RunReport, StepEstimates, StepSource, TruthSource};
 use crate::accuracy::{HeldOutReport, Z_95};
 use crate::error::Result;
 use crate::model::Model;
-use crate::run::CheckedSpec;
 
 /// Which readings a run keeps from its filter: each reading in the data independently with
 /// probability `share`, drawn from a `ChaCha8Rng` seeded with `seed` in the order of the data
@@ -29,18 +29,10 @@ pub struct HoldOut {
     seed: u64,
 }
 
-/// A share of readings to hold out that is not a probability strictly between 0 and 1.
-#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
-#[error("hold-out share {0}: expected a number above 0 and below 1")]
-pub struct HoldOutError(pub f64);
-
 impl HoldOut {
-    /// Holds out each reading with probability `share` (`0 < share < 1`).
-    pub fn new(share: f64, seed: u64) -> std::result::Result<Self, HoldOutError> {
-        match share > 0.0 && share < 1.0 {
-            true => Ok(Self { share, seed }),
-            false => Err(HoldOutError(share)),
-        }
+    /// Holds out each reading with probability `share`; `None` unless `0 < share < 1`.
+    pub(super) fn new(share: f64, seed: u64) -> Option<Self> {
+        (share > 0.0 && share < 1.0).then_some(Self { share, seed })
     }
 }
 
@@ -162,10 +154,10 @@ fn interpolate(seen: &[(usize, f64)], t: usize) -> Option<f64> {
 /// estimates (docs/theory.md §17): the report's `summary.held_out`. The estimates handed to
 /// `sink`, and every other figure of the report, are those of the data without the held-out
 /// readings.
-pub fn stream_held_out(
+pub(super) fn stream_held_out(
     model: &Model,
     spec: &CheckedSpec,
-    hold: &HoldOut,
+    hold: HoldOut,
     source: &mut dyn StepSource,
     truth: Option<&mut dyn TruthSource>,
     sink: &mut dyn EstimateSink,
@@ -188,7 +180,7 @@ pub fn stream_held_out(
         next: 0,
         scored: Vec::new(),
     };
-    let mut report = super::stream(model, spec, &mut hiding, truth, &mut scorer)?;
+    let mut report = super::stream_all(model, spec, &mut hiding, truth, &mut scorer)?;
     let scored = scorer.scored;
     let held = held.into_inner();
     let q = model.dims.q;
@@ -233,8 +225,8 @@ mod tests {
     #[test]
     fn a_share_outside_zero_to_one_is_refused() {
         for share in [0.0, 1.0, -0.1, 1.5, f64::NAN] {
-            assert!(HoldOut::new(share, 1).is_err(), "{share}");
+            assert!(HoldOut::new(share, 1).is_none(), "{share}");
         }
-        assert!(HoldOut::new(0.1, 1).is_ok());
+        assert!(HoldOut::new(0.1, 1).is_some());
     }
 }

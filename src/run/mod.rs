@@ -26,7 +26,7 @@ use crate::model::Model;
 use crate::smoother::{Smoother, memory_bytes};
 use crate::stability::{RadiusEffort, SpectralRadius, Stability, spectral_radius};
 
-pub use hold_out::{HoldOut, HoldOutError, stream_held_out};
+pub use hold_out::HoldOut;
 use score::Scores;
 pub use source::{
     ArraySource, FileSource, ReadAhead, ReaderTruth, SliceTruth, StepSource, TruthSource, read_all,
@@ -183,8 +183,24 @@ pub struct RunReport {
 /// step (refused once it would exceed `max_memory`). With `predicted`, row `t` holds
 /// `x̂(t+1|t)`, `T(t+1)` and is scored against the truth at `t + 1`. The warnings a run
 /// deserves (an untrustworthy covariance, an unstable chain, an inaccurate transfer solver,
-/// what the smoother had to do) go to [`EstimateSink::note`].
+/// what the smoother had to do) go to [`EstimateSink::note`]. With readings held out
+/// ([`CheckedSpec::hold_out`]), the run is that of the data without them, and the report
+/// scores its estimates on them (docs/theory.md §17).
 pub fn stream(
+    model: &Model,
+    spec: &CheckedSpec,
+    source: &mut dyn StepSource,
+    truth: Option<&mut dyn TruthSource>,
+    sink: &mut dyn EstimateSink,
+) -> Result<RunReport> {
+    match spec.hold_out() {
+        Some(hold) => hold_out::stream_held_out(model, spec, hold, source, truth, sink),
+        None => stream_all(model, spec, source, truth, sink),
+    }
+}
+
+/// [`stream`] over every reading of `source`.
+fn stream_all(
     model: &Model,
     spec: &CheckedSpec,
     source: &mut dyn StepSource,

@@ -12,6 +12,7 @@ use crate::interconnect::SolverKind;
 use crate::io::estimates::{EstimateKind, EstimateOptions, EstimatesColumns, JointSettings};
 use crate::memory::DEFAULT_MAX_MEMORY;
 use crate::model::Model;
+use crate::run::HoldOut;
 use crate::smoother::{
     CentralizedSmoother, DistributedSmoother, JointSmoother, Smoother, SmootherKind,
 };
@@ -62,6 +63,15 @@ pub enum SpecError {
     /// `band_tol` and `loading` are finite numbers ≥ 0.
     #[error("{} = {value}: expected a finite number ≥ 0", .setting.name())]
     NotFiniteNonNegative { setting: Setting, value: f64 },
+    /// A share of readings to hold out is a probability strictly between 0 and 1.
+    #[error("hold_out = {0}: expected a share above 0 and below 1")]
+    HoldOutShare(f64),
+    /// Row `t` of a predicted run estimates step `t + 1`, not the step of the readings held
+    /// out of it.
+    #[error(
+        "hold_out and predicted exclude each other: held-out readings are scored against the estimate of their own step"
+    )]
+    HoldOutPredicted,
 }
 
 /// The one rule on how the measurements update the estimate: the mixture update needs unknown
@@ -117,6 +127,10 @@ pub struct RunSpec {
     /// The estimates gain the column `nis`, the normalised innovation squared of every
     /// `(t, i)` (docs/theory.md §14; the innovation check itself runs whatever).
     pub nis_column: bool,
+    /// Keep this share of the readings from the run and score its estimates on them
+    /// (docs/theory.md §17), drawn with `hold_out_seed`.
+    pub hold_out: Option<f64>,
+    pub hold_out_seed: u64,
 }
 
 impl Default for RunSpec {
@@ -138,6 +152,8 @@ impl Default for RunSpec {
             max_lifted: DEFAULT_MAX_LIFTED,
             max_memory: None,
             nis_column: false,
+            hold_out: None,
+            hold_out_seed: 1,
         }
     }
 }
@@ -163,6 +179,15 @@ impl RunSpec {
             (false, true) => EstimateKind::Predicted,
             (false, false) => EstimateKind::Filtered,
         };
+        let hold_out = match self.hold_out {
+            None => None,
+            Some(_) if output == EstimateKind::Predicted => {
+                return Err(SpecError::HoldOutPredicted);
+            }
+            Some(share) => Some(
+                HoldOut::new(share, self.hold_out_seed).ok_or(SpecError::HoldOutShare(share))?,
+            ),
+        };
         Ok(CheckedSpec {
             filter: self.filter,
             paper: self.paper,
@@ -172,6 +197,7 @@ impl RunSpec {
             max_lifted: self.max_lifted,
             max_memory: self.max_memory.unwrap_or(DEFAULT_MAX_MEMORY),
             nis_column: self.nis_column,
+            hold_out,
         })
     }
 
@@ -227,9 +253,15 @@ pub struct CheckedSpec {
     max_lifted: usize,
     max_memory: u64,
     nis_column: bool,
+    hold_out: Option<HoldOut>,
 }
 
 impl CheckedSpec {
+    /// The readings a run keeps from its filter to score it on, if any (docs/theory.md §17).
+    pub fn hold_out(&self) -> Option<HoldOut> {
+        self.hold_out
+    }
+
     pub fn filter_kind(&self) -> FilterKind {
         self.filter
     }

@@ -7,9 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use sisfilt::accuracy::HeldOutReport;
 use sisfilt::filter::FilterKind;
 use sisfilt::model::Model;
-use sisfilt::run::{
-    ArraySource, EstimateSink, HoldOut, Note, RunSpec, StepEstimates, estimate, stream_held_out,
-};
+use sisfilt::run::{RunSpec, estimate};
 
 use crate::common::{model_from, one_error_line, shipped_config, simulate_steps, sisfilt};
 
@@ -39,23 +37,6 @@ const CHAIN: &str = r#"
     period = 20.0
     phase = 0.5
 "#;
-
-/// The estimates a run hands on, kept.
-#[derive(Default)]
-struct Keep {
-    x: Vec<f64>,
-    p: Vec<f64>,
-}
-
-impl EstimateSink for Keep {
-    fn step(&mut self, step: &StepEstimates<'_>) -> sisfilt::Result<()> {
-        self.x.extend_from_slice(step.x);
-        self.p.extend_from_slice(step.p);
-        Ok(())
-    }
-
-    fn note(&mut self, _: Note) {}
-}
 
 /// `y` (`T × N × q`) and `u` of `steps` simulated steps, with some elements not in the data.
 fn data_with_gaps(model: &Model, steps: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
@@ -145,20 +126,16 @@ fn held_out_run(
     spec: &RunSpec,
     y: &[f64],
     u: &[f64],
-    hold: &HoldOut,
+    (share, seed): (f64, u64),
 ) -> (HeldOutReport, Vec<f64>) {
-    let mut source = ArraySource::new(model, y, Some(u)).unwrap();
-    let mut keep = Keep::default();
-    let report = stream_held_out(
-        model,
-        &spec.clone().check().unwrap(),
-        hold,
-        &mut source,
-        None,
-        &mut keep,
-    )
-    .unwrap();
-    (report.summary.held_out.expect("a held-out report"), keep.x)
+    let spec = RunSpec {
+        hold_out: Some(share),
+        hold_out_seed: seed,
+        ..spec.clone()
+    };
+    let run = estimate(model, &spec.check().unwrap(), y, Some(u), None).unwrap();
+    let report = run.report.summary.held_out.expect("a held-out report");
+    (report, run.x)
 }
 
 fn assert_close(what: &str, got: f64, want: f64) {
@@ -187,7 +164,7 @@ fn the_figures_are_those_of_a_run_without_the_held_out_readings() {
     ];
     for spec in &specs {
         let (share, seed) = (0.15, 9);
-        let (got, got_x) = held_out_run(&model, spec, &y, &u, &HoldOut::new(share, seed).unwrap());
+        let (got, got_x) = held_out_run(&model, spec, &y, &u, (share, seed));
         let (want, want_x) = expected_figures(&model, spec, &y, &u, share, seed);
         let what = format!("{:?} smooth {}", spec.filter, spec.smooth);
         assert_eq!(got.readings, want.readings, "{what}");
@@ -223,12 +200,12 @@ fn the_true_model_claims_the_variance_of_its_errors() {
         "M = [[0.04, 0.0], [0.0, 0.09]]",
         "M = [[0.16, 0.0], [0.0, 0.36]]",
     ));
-    let hold = HoldOut::new(0.2, 3).unwrap();
+    let hold = (0.2, 3);
     let spec = RunSpec {
         filter: FilterKind::Joint,
         ..RunSpec::default()
     };
-    let (right, _) = held_out_run(&truth, &spec, &y, &u, &hold);
+    let (right, _) = held_out_run(&truth, &spec, &y, &u, hold);
     let tolerance = 8.0 * (2.0 / right.readings as f64).sqrt();
     assert!(
         (right.standardised - 1.0).abs() < tolerance,
@@ -237,7 +214,7 @@ fn the_true_model_claims_the_variance_of_its_errors() {
     // Readings noisier than the state moves between steps: the model's estimate beats the
     // interpolation of the noisy readings.
     assert!(right.rmse < right.interpolation_rmse, "{right:?}");
-    let (too_large, _) = held_out_run(&wrong, &spec, &y, &u, &hold);
+    let (too_large, _) = held_out_run(&wrong, &spec, &y, &u, hold);
     assert!(
         too_large.standardised < 0.5,
         "M four times too large: {too_large:?}"
