@@ -391,6 +391,10 @@ pub struct HeldOutReport {
     /// `√ mean (y − ỹ)²`, `ỹ` the linear interpolation in time of the same sensor's readings
     /// the run saw (the nearest one where there is none on one side).
     pub interpolation_rmse: f64,
+    /// `√ mean (y − y_last)²`, `y_last` the same sensor's last reading the run saw before
+    /// (the nearest after where there is none): the baseline of a filter, which sees only the
+    /// past.
+    pub last_reading_rmse: f64,
     /// `mean (y − J x̂ − R u)² / (J P Jᵀ + M)_kk`: 1 where the claimed variance is right.
     pub standardised: f64,
     /// The 95 % band of `standardised` if its terms were independent `χ²₁` (they are
@@ -407,13 +411,15 @@ impl HeldOutReport {
             k => format!(" ({k} more left unscored: nothing to interpolate from)"),
         };
         format!(
-            "{} readings ({:.1} %, seed {}) kept from the filter{unscored}: RMSE {:.4e} against {:.4e} for linear interpolation in time ({:.3}×); mean standardised square {:.4} (95 % band of an honest variance [{:.4}, {:.4}] if the terms were independent)",
+            "{} readings ({:.1} %, seed {}) kept from the filter{unscored}: RMSE {:.4e} against {:.4e} for linear interpolation in time ({:.3}×) and {:.4e} for the sensor's last reading ({:.3}×); mean standardised square {:.4} (95 % band of an honest variance [{:.4}, {:.4}] if the terms were independent)",
             self.readings,
             100.0 * self.share,
             self.seed,
             self.rmse,
             self.interpolation_rmse,
             self.rmse / self.interpolation_rmse,
+            self.last_reading_rmse,
+            self.rmse / self.last_reading_rmse,
             self.standardised,
             band.0,
             band.1

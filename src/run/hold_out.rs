@@ -1,8 +1,9 @@
 //! Readings held out of the filter (docs/theory.md §17): a seeded share of the readings in the
 //! data is hidden from the run, to which each is a gap (§15), and each is then compared with
 //! what the run's estimate of its time says the sensor should read, `J x̂ + R u`, with the
-//! variance the run claims for that reading, `J P Jᵀ + M`, and with a baseline that needs no
-//! model: the sensor's own readings interpolated linearly in time.
+//! variance the run claims for that reading, `J P Jᵀ + M`, and with baselines that need no
+//! model: the sensor's own readings interpolated linearly in time, and its last reading
+//! before (what a causal filter must beat).
 //!
 //! This is what can be scored on a recording without a truth: a model whose held-out errors
 //! beat the interpolation and whose standardised squares average 1 predicts readings it has
@@ -137,15 +138,16 @@ impl EstimateSink for Scorer<'_> {
     }
 }
 
-/// The linear interpolation at `t` of a sensor's readings `seen` (in time order), or the
-/// nearest reading where there is none on one side; `None` without any.
-fn interpolate(seen: &[(usize, f64)], t: usize) -> Option<f64> {
+/// The baselines at `t` from a sensor's readings `seen` (in time order): their linear
+/// interpolation, and the last reading before `t` (a causal filter's counterpart); where there
+/// is none on one side, the nearest reading for both. `None` without any.
+fn baselines(seen: &[(usize, f64)], t: usize) -> Option<(f64, f64)> {
     let after = seen.partition_point(|&(s, _)| s < t);
     match (after.checked_sub(1).map(|b| seen[b]), seen.get(after)) {
         (Some((t0, y0)), Some(&(t1, y1))) => {
-            Some(y0 + (y1 - y0) * (t - t0) as f64 / (t1 - t0) as f64)
+            Some((y0 + (y1 - y0) * (t - t0) as f64 / (t1 - t0) as f64, y0))
         }
-        (Some((_, y)), None) | (None, Some(&(_, y))) => Some(y),
+        (Some((_, y)), None) | (None, Some(&(_, y))) => Some((y, y)),
         (None, None) => None,
     }
 }
@@ -184,13 +186,15 @@ pub(super) fn stream_held_out(
     let scored = scorer.scored;
     let held = held.into_inner();
     let q = model.dims.q;
-    let (mut sq, mut sq_interp, mut standardised, mut readings) = (0.0, 0.0, 0.0, 0usize);
+    let (mut sq, mut sq_interp, mut sq_last, mut standardised) = (0.0, 0.0, 0.0, 0.0);
+    let mut readings = 0usize;
     for (r, (error, claimed)) in held.readings.iter().zip(scored) {
-        let Some(interpolated) = interpolate(&held.seen[r.i * q + r.k], r.t) else {
+        let Some((interpolated, last)) = baselines(&held.seen[r.i * q + r.k], r.t) else {
             continue;
         };
         sq += error * error;
         sq_interp += (r.y - interpolated).powi(2);
+        sq_last += (r.y - last).powi(2);
         standardised += error * error / claimed;
         readings += 1;
     }
@@ -203,6 +207,7 @@ pub(super) fn stream_held_out(
         unscored: held.readings.len() - readings,
         rmse: (sq / count).sqrt(),
         interpolation_rmse: (sq_interp / count).sqrt(),
+        last_reading_rmse: (sq_last / count).sqrt(),
         standardised: standardised / count,
         band: (1.0 - half_width, 1.0 + half_width),
     });
@@ -216,10 +221,10 @@ mod tests {
     #[test]
     fn interpolates_between_and_takes_the_nearest_at_the_ends() {
         let seen = [(2, 1.0), (6, 3.0)];
-        assert_eq!(interpolate(&seen, 3), Some(1.5));
-        assert_eq!(interpolate(&seen, 1), Some(1.0));
-        assert_eq!(interpolate(&seen, 9), Some(3.0));
-        assert_eq!(interpolate(&[], 4), None);
+        assert_eq!(baselines(&seen, 3), Some((1.5, 1.0)));
+        assert_eq!(baselines(&seen, 1), Some((1.0, 1.0)));
+        assert_eq!(baselines(&seen, 9), Some((3.0, 3.0)));
+        assert_eq!(baselines(&[], 4), None);
     }
 
     #[test]

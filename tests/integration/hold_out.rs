@@ -71,7 +71,7 @@ fn expected_figures(
         }
     }
     let run = estimate(model, &spec.clone().check().unwrap(), &kept, Some(u), None).unwrap();
-    let (mut sq, mut sq_interp, mut standardised) = (0.0, 0.0, 0.0);
+    let (mut sq, mut sq_interp, mut sq_last, mut standardised) = (0.0, 0.0, 0.0, 0.0);
     for &k in &held {
         let (t, i, e) = (k / (big_n * q), k / q % big_n, k % q);
         let params = model.params(t + 1, i + 1);
@@ -94,16 +94,18 @@ fn expected_figures(
         let reading = |s: usize| kept[(s * big_n + i) * q + e];
         let before = (0..t).rev().find(|&s| !reading(s).is_nan());
         let after = (t + 1..kept.len() / (big_n * q)).find(|&s| !reading(s).is_nan());
-        let interpolated = match (before, after) {
-            (Some(s0), Some(s1)) => {
-                reading(s0) + (reading(s1) - reading(s0)) * (t - s0) as f64 / (s1 - s0) as f64
-            }
-            (Some(s), None) | (None, Some(s)) => reading(s),
+        let (interpolated, last) = match (before, after) {
+            (Some(s0), Some(s1)) => (
+                reading(s0) + (reading(s1) - reading(s0)) * (t - s0) as f64 / (s1 - s0) as f64,
+                reading(s0),
+            ),
+            (Some(s), None) | (None, Some(s)) => (reading(s), reading(s)),
             (None, None) => unreachable!("every sensor has kept readings here"),
         };
         let error = y[k] - predicted;
         sq += error * error;
         sq_interp += (y[k] - interpolated).powi(2);
+        sq_last += (y[k] - last).powi(2);
         standardised += error * error / claimed;
     }
     let count = held.len() as f64;
@@ -115,6 +117,7 @@ fn expected_figures(
         unscored: 0,
         rmse: (sq / count).sqrt(),
         interpolation_rmse: (sq_interp / count).sqrt(),
+        last_reading_rmse: (sq_last / count).sqrt(),
         standardised: standardised / count,
         band: (1.0 - half, 1.0 + half),
     };
@@ -181,6 +184,11 @@ fn the_figures_are_those_of_a_run_without_the_held_out_readings() {
             want.interpolation_rmse,
         );
         assert_close(
+            &format!("{what} last reading"),
+            got.last_reading_rmse,
+            want.last_reading_rmse,
+        );
+        assert_close(
             &format!("{what} standardised"),
             got.standardised,
             want.standardised,
@@ -214,6 +222,7 @@ fn the_true_model_claims_the_variance_of_its_errors() {
     // Readings noisier than the state moves between steps: the model's estimate beats the
     // interpolation of the noisy readings.
     assert!(right.rmse < right.interpolation_rmse, "{right:?}");
+    assert!(right.rmse < right.last_reading_rmse, "{right:?}");
     let (too_large, _) = held_out_run(&wrong, &spec, &y, &u, hold);
     assert!(
         too_large.standardised < 0.5,
