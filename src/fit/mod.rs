@@ -10,6 +10,7 @@
 //! correlations, and the per-step scores the robust (sandwich) ones.
 
 pub mod band;
+mod gradient;
 mod parameter;
 mod report;
 
@@ -33,6 +34,7 @@ use crate::model::Model;
 use crate::run::{self, CheckedSpec, RunSpec, SpecError};
 
 pub use band::ObjectiveChoice;
+pub use gradient::noise_score;
 pub use parameter::{ParamGroup, Parameter};
 pub use report::{FitReport, FittedParameter, ReportFormat};
 

@@ -20,6 +20,7 @@ use crate::error::Result;
 
 mod checker;
 mod initial;
+mod noise;
 
 use checker::Checker;
 pub use initial::{InitialCondition, InitialConditions};

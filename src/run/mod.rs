@@ -565,7 +565,7 @@ pub fn innovation_report(
 
 /// Refuses a measurement that is neither a finite number nor NaN (an element not in the
 /// data, docs/theory.md §15).
-fn check_measurements(model: &Model, y: &[f64]) -> Result<()> {
+pub fn check_measurements(model: &Model, y: &[f64]) -> Result<()> {
     let Some(k) = y.iter().position(|v| v.is_infinite()) else {
         return Ok(());
     };

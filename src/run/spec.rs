@@ -338,7 +338,7 @@ impl CheckedSpec {
         }
     }
 
-    fn centralized_limits(&self) -> CentralizedLimits {
+    pub fn centralized_limits(&self) -> CentralizedLimits {
         CentralizedLimits {
             max_lifted: self.max_lifted,
             max_memory: self.max_memory,

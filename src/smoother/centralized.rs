@@ -104,7 +104,45 @@ impl Smoother for CentralizedSmoother {
         self.filter.second_moments(out)
     }
 
-    fn backward(mut self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
+    fn backward(self: Box<Self>, keep_gains: bool) -> Result<Smoothed> {
+        self.backward_visiting(keep_gains, &mut |_| {})
+    }
+}
+
+/// What one backward step `t = k+1` of the centralized smoother holds in full (`S = N·n`):
+/// the statistics beyond the diagonal blocks of `P(t|T)` that [`crate::smoother::score`]
+/// needs, the lag-one covariance `Cov(x(t), x(t+1) | T) = C_t P(t+1|T)` among them.
+pub struct BackwardStep<'a> {
+    /// 0-based: the step `t = k+1`, whose transition to `t+1` this is.
+    pub k: usize,
+    /// `A_eff(t)`, the transition from `t` to `t+1`.
+    pub a_eff: &'a DMatrix<f64>,
+    /// `x̂(t|t)` and `x̂(t+1|t)`.
+    pub x_filtered: &'a [f64],
+    pub x_predicted_next: &'a [f64],
+    /// `x̂(t|T)` and `x̂(t+1|T)`.
+    pub x_smoothed: &'a [f64],
+    pub x_smoothed_next: &'a [f64],
+    /// `P(t|T)` and `P(t+1|T)`, whole.
+    pub p_smoothed: &'a DMatrix<f64>,
+    pub p_smoothed_next: &'a DMatrix<f64>,
+    /// `C_tᵀ`.
+    pub gain_transposed: &'a DMatrix<f64>,
+}
+
+impl CentralizedSmoother {
+    /// The log density of the last forward step's measurements (docs/theory.md §16).
+    pub fn log_likelihood(&self) -> Option<f64> {
+        self.filter.log_likelihood()
+    }
+
+    /// [`Smoother::backward`], showing `visit` every backward step, `t = T−1, …, 1`, once
+    /// `P(t|T)` is formed.
+    pub fn backward_visiting(
+        mut self: Box<Self>,
+        keep_gains: bool,
+        visit: &mut dyn FnMut(&BackwardStep),
+    ) -> Result<Smoothed> {
         let model = &self.model.clone();
         let (n, big_n) = (model.dims.n, model.subsystems);
         let steps = self.x_filt.len();
@@ -164,6 +202,17 @@ impl Smoother for CentralizedSmoother {
                 faer_ref(&diff_gain),
                 1.0,
             );
+            visit(&BackwardStep {
+                k,
+                a_eff: &self.a_eff[k].dense,
+                x_filtered: self.x_filt[k].as_slice(),
+                x_predicted_next: self.x_pred[k].as_slice(),
+                x_smoothed: &xs[k],
+                x_smoothed_next: &xs[k + 1],
+                p_smoothed: &ps[k],
+                p_smoothed_next: &ps[k + 1],
+                gain_transposed: &gain_tr,
+            });
             if keep_gains {
                 gains.push(BackwardGain::Dense(gain_tr));
             }

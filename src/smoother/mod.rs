@@ -11,6 +11,7 @@
 pub mod centralized;
 pub mod distributed;
 pub mod joint;
+pub mod score;
 
 use std::sync::Arc;
 

@@ -23,6 +23,7 @@ mod hold_out;
 mod initial;
 mod innovations;
 mod joint_filter;
+mod noise_score;
 mod plot_cli;
 mod properties;
 mod python_files;
