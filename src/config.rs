@@ -336,7 +336,7 @@ impl<'de> Deserialize<'de> for RawRanges {
 }
 
 /// One `[[override]]` table: parameters that apply on rectangles of `(t, i)`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawOverride {
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -372,6 +372,28 @@ pub struct RawOverride {
     /// These subsystems' own initial condition (at `t = 1`, so not with `steps`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub initial: Option<RawOverrideInitial>,
+}
+
+impl RawOverride {
+    /// The noise matrix `Q` or `M` the override sets.
+    pub fn noise_mut(&mut self, key: &str) -> &mut Option<RawMatrix> {
+        match key {
+            "Q" => &mut self.Q,
+            _ => &mut self.M,
+        }
+    }
+
+    /// True when the override sets no value (it names only where it applies).
+    pub fn sets_nothing(&self) -> bool {
+        let matrices = [
+            &self.A, &self.B, &self.C, &self.D, &self.G, &self.H, &self.J, &self.R, &self.M,
+            &self.Q,
+        ];
+        matrices.iter().all(|m| m.is_none())
+            && self.p.is_none()
+            && self.measured.is_none()
+            && self.initial.is_none()
+    }
 }
 
 /// `initial.mean`, `initial.cov` in an override: either, or both; what is left out is the

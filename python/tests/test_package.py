@@ -182,6 +182,21 @@ def test_fit_equals_the_command_lines_json(cli, platoon_run):
     assert fitted.to_toml() == sisfilt.Model.from_toml(d / "fitted.toml").to_toml()
 
 
+def test_fit_of_each_subsystems_noise_equals_the_command_lines(cli, platoon_run):
+    d = platoon_run
+    out = cli("fit", "--config", config("platoon.toml"), "--meas", "gaps.csv", "--inputs",
+              "inputs.csv", "--params", "Q[i],M", "--dropouts", "known", "--format", "json",
+              "--out", "each.toml", cwd=d)
+    doc = json.loads(out.stdout)
+    y, u = arrays(d, "gaps.csv")
+    report, fitted = sisfilt.fit(sisfilt.Model.from_toml(config("platoon.toml")), y, u,
+                                 params=["Q[i]", "M"], dropouts="known")
+    assert report["filter"] == "centralized"
+    assert report["parameters"][2]["name"] == "Q11[i=1]"
+    assert report["parameters"] == doc["parameters"]
+    assert fitted.to_toml() == sisfilt.Model.from_toml(d / "each.toml").to_toml()
+
+
 def test_with_changes_a_copy_as_set_does(cli, tmp_path):
     model = sisfilt.Model.from_toml(config("platoon.toml"))
     changed = model.with_(p=0.6, M=np.array([[0.02, 0.0], [0.0, 0.005]]), steps=30)

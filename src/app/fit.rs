@@ -1,5 +1,5 @@
-//! `sisfilt fit`: maximum-likelihood estimates of `p` and the diagonals of `Q` and `M` from a
-//! measurement file, with intervals (docs/theory.md §16).
+//! `sisfilt fit`: maximum-likelihood estimates of `p` and the diagonals of `Q` and `M` (shared
+//! or each subsystem's own) from a measurement file, with intervals (docs/theory.md §16).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -27,7 +27,8 @@ pub struct FitArgs {
     pub data: DataArgs,
     /// What to fit, comma-separated: p (one arrival probability for the whole chain), Q and M
     /// (their diagonals, each entry shared by every subsystem; off-diagonal entries stay as
-    /// configured) [default: p,Q,M; Q,M with --dropouts known].
+    /// configured), Q[i] and M[i] (each subsystem's own diagonal) [default: p,Q,M; Q,M with
+    /// --dropouts known].
     #[arg(long, value_name = "LIST")]
     pub params: Option<String>,
     /// The filter whose log-likelihood is maximised: joint (default) or centralized (exact;
@@ -168,7 +169,7 @@ fn fitted_config_text(
     let name = out.display().to_string();
     let fitted = ConfigSource::from_raw(&name, src.dir.clone(), raw)?;
     let model = Model::from_config(&fitted)?;
-    if model.param_sets() != fit.model.param_sets() || model.windows() != fit.model.windows() {
+    if !model.same_parameters(&fit.model) {
         return Err(Error::Usage(format!(
             "{name}: the fitted config does not read back as the fitted model (please report this)"
         ))

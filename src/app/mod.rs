@@ -223,7 +223,10 @@ fn in_flag_words(e: impl Into<Error>) -> Error {
         }
         e @ Error::TransferSolver { .. } => format!("{e}; use --solver banded"),
         Error::Fit(FitError::UnknownParameter(name)) => {
-            format!("--params: unknown parameter `{name}`: expected a list of p, Q and M")
+            format!("--params: unknown parameter `{name}`: expected a list of p, Q, M, Q[i] and M[i]")
+        }
+        Error::Fit(e @ (FitError::SharedAndEach(_) | FitError::EachVariesInTime(_))) => {
+            format!("--{e}")
         }
         Error::Fit(FitError::NoParameters) => "--params: expected at least one of p, Q and M".into(),
         Error::Fit(FitError::DistributedQ) => "--filter distributed cannot fit Q: its log-likelihood ignores the uncertainty of the neighbours' states, which Q then absorbs (docs/theory.md §16); use --filter joint or centralized, or leave Q out of --params".into(),

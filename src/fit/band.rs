@@ -44,7 +44,9 @@ impl Candidate {
 pub struct ObjectiveChoice {
     /// The joint filter's band, `None` for the centralized filter.
     pub band: Option<usize>,
-    /// Chosen by the fit; false where `--band` or `--filter centralized` fixed it.
+    /// Chosen by the fit (by the band's log-likelihood, or, with nothing `tried`, for the
+    /// exact gradient of each subsystem's own variances); false where `--band` or `--filter
+    /// centralized` fixed it.
     pub chosen: bool,
     /// The candidates, cheapest first, up to the one chosen and the one it was checked
     /// against (each with its `ℓ` at the configured values).
@@ -71,7 +73,9 @@ impl ObjectiveChoice {
             Some(k) => format!("the joint filter at band {k}"),
             None => "the centralized filter (the exact covariances)".to_string(),
         };
-        let how = if self.chosen {
+        let how = if self.chosen && self.tried.is_empty() {
+            ", chosen for its exact gradient of each subsystem's own variances (docs/theory.md §16); --band K fixes the joint filter's band instead".to_string()
+        } else if self.chosen {
             let tried: Vec<String> = self
                 .tried
                 .iter()

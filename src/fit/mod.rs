@@ -11,6 +11,7 @@
 
 pub mod band;
 mod gradient;
+mod objective;
 mod parameter;
 mod report;
 
@@ -19,11 +20,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use argmin::core::observers::{Observe, ObserverMode};
-use argmin::core::{CostFunction, Executor, Gradient, IterState, KV, State};
+use argmin::core::{Executor, IterState, KV, State};
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
-use nalgebra::{DMatrix, DVector};
-use rayon::prelude::*;
 
 use crate::accuracy::Z_95;
 use crate::config::RawConfig;
@@ -32,6 +31,8 @@ use crate::filter::{Dropouts, FilterKind, Update};
 use crate::innovations::Fitted;
 use crate::model::Model;
 use crate::run::{self, CheckedSpec, RunSpec, SpecError};
+
+use objective::{NoInterval, Objective};
 
 pub use band::ObjectiveChoice;
 pub use gradient::noise_score;
@@ -42,20 +43,6 @@ pub use report::{FitReport, FittedParameter, ReportFormat};
 pub const DEFAULT_MAX_ITER: usize = 200;
 /// `logit p` stays within `±LOGIT_BOUND` (`p` within about `3e−7` of 0 and 1).
 const LOGIT_BOUND: f64 = 15.0;
-/// Each log variance stays within `±LOG_RANGE` of its starting value.
-const LOG_RANGE: f64 = 25.0;
-/// Step in `θ` of the gradient's central differences (and of the per-step scores).
-const GRADIENT_STEP: f64 = 1e-5;
-/// Step in `θ` of the Hessian's central differences.
-const HESSIAN_STEP: f64 = 1e-3;
-/// Weight of the quadratic wall outside the box, per unit of `θ` squared.
-const WALL: f64 = 1e3;
-/// `θ_k` within this of a bound of its box is on the boundary: no interval.
-const ON_BOUNDARY: f64 = 1e-3;
-/// A candidate whose `Q` or `M` is not a covariance, or whose filter breaks down, costs this
-/// much more than the start (the log-likelihood there is `−∞`; a finite cliff keeps the line
-/// search going).
-const CLIFF: f64 = 1e6;
 /// L-BFGS history length.
 const LBFGS_MEMORY: usize = 10;
 
@@ -63,7 +50,7 @@ const LBFGS_MEMORY: usize = 10;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum FitError {
     /// A name in `params` that is not `p`, `Q` or `M`.
-    #[error("params: unknown parameter `{0}`: expected a list of p, Q and M")]
+    #[error("params: unknown parameter `{0}`: expected a list of p, Q, M, Q[i] and M[i]")]
     UnknownParameter(String),
     /// `params` names nothing.
     #[error("params: expected at least one of p, Q and M")]
@@ -82,6 +69,15 @@ pub enum FitError {
     /// `max_iter = 0`.
     #[error("max_iter: expected at least 1 iteration")]
     NoIterations,
+    /// `Q` and `Q[i]` (or `M` and `M[i]`) both name the diagonal.
+    #[error("params: {0} and {0}[i] both name the diagonal of {0}: give one of them")]
+    SharedAndEach(&'static str),
+    /// `Q[i]` or `M[i]` with a matrix that varies in time: one value per subsystem would
+    /// overwrite it at every step.
+    #[error(
+        "params: {0}[i] fits one {0} for each subsystem over every step, but the config's {0} varies in time (an override with steps): fit {0} instead, or give each subsystem one {0}"
+    )]
+    EachVariesInTime(&'static str),
 }
 
 /// What to fit and how, as asked for; [`FitSpec::check`] makes it a [`CheckedFit`].
@@ -134,8 +130,18 @@ impl FitSpec {
         if self.max_iter == 0 {
             return Err(FitError::NoIterations.into());
         }
-        if self.filter == FilterKind::Distributed && self.params.contains(&ParamGroup::Q) {
+        if self.filter == FilterKind::Distributed
+            && self.params.iter().any(|g| g.key() == Some("Q"))
+        {
             return Err(FitError::DistributedQ.into());
+        }
+        for (shared, each, key) in [
+            (ParamGroup::Q, ParamGroup::QEach, "Q"),
+            (ParamGroup::M, ParamGroup::MEach, "M"),
+        ] {
+            if self.params.contains(&shared) && self.params.contains(&each) {
+                return Err(FitError::SharedAndEach(key).into());
+            }
         }
         if self.dropouts == Dropouts::Known && self.params.contains(&ParamGroup::P) {
             return Err(FitError::PWithKnownDropouts.into());
@@ -167,6 +173,28 @@ impl FitSpec {
 }
 
 impl CheckedFit {
+    /// Whether the fit follows the exact gradient of the smoother ([`NoiseScorer`]) rather
+    /// than differences of filter runs: it fits some subsystem's own variances (`Q[i]`,
+    /// `M[i]`: hundreds of parameters on a long chain) and nothing else than variances, by
+    /// the exact Gaussian likelihood — the centralized filter (chosen for it when the joint
+    /// filter's band was left to the fit and the chain is small enough), with known dropouts
+    /// or `p = 1` at every sensor.
+    ///
+    /// [`NoiseScorer`]: crate::smoother::score::NoiseScorer
+    fn follows_score(&self, model: &Model) -> bool {
+        let exact = match self.run.filter_kind() {
+            FilterKind::Centralized => true,
+            FilterKind::Joint => {
+                self.choose_band && model.subsystems * model.dims.n <= self.run.max_lifted()
+            }
+            FilterKind::Distributed => false,
+        };
+        exact
+            && self.params.iter().any(ParamGroup::per_subsystem)
+            && !self.params.contains(&ParamGroup::P)
+            && (self.run.dropouts() == Dropouts::Known || !model.loses_readings())
+    }
+
     /// The objective of a fit of `model` to `y`: the run whose log-likelihood is maximised
     /// (and whose innovation check judges the fit), the joint filter's band chosen where none
     /// was given ([`band::choose`]), with the next wider objective to compare at the estimate.
@@ -183,6 +211,13 @@ impl CheckedFit {
             reference,
             gap_at_estimate: None,
         };
+        if self.follows_score(model) {
+            let choice = ObjectiveChoice {
+                chosen: self.choose_band,
+                ..fixed(None, None)
+            };
+            return Ok((self.run.with_band(None), Some(choice)));
+        }
         Ok(match self.run.filter_kind() {
             FilterKind::Joint if self.choose_band => {
                 let (chosen, reference, tried) = band::choose(model, &self.run, y, u)?;
@@ -224,6 +259,16 @@ impl Fit {
         for &(parameter, value) in &self.estimates {
             parameter.write(&mut raw, value);
         }
+        for key in ["Q", "M"] {
+            let each = |p: &(Parameter, f64)| match p.0 {
+                Parameter::QOf { .. } => key == "Q",
+                Parameter::MOf { .. } => key == "M",
+                _ => false,
+            };
+            if self.estimates.iter().any(each) {
+                parameter::write_per_subsystem(&mut raw, &self.model, key);
+            }
+        }
         raw
     }
 }
@@ -252,10 +297,25 @@ pub fn fit(
     progress: Option<ProgressFn>,
 ) -> Result<Fit> {
     let started = Instant::now();
+    for group in spec.params.iter().filter(|g| g.per_subsystem()) {
+        let key = group.key().expect("a variance");
+        if model.variation(key).0 {
+            return Err(FitError::EachVariesInTime(key).into());
+        }
+    }
     let parameters = Parameter::all(model, &spec.params);
     let mut warnings = parameter::start_warnings(model, &parameters);
+    let score = spec.follows_score(model);
+    if spec.params.iter().any(ParamGroup::per_subsystem) && !score {
+        warnings.push(format!(
+            "{} parameters by differences of filter runs, {} runs a gradient: the exact gradient needs the centralized filter on at most {} lifted states, known dropouts or p = 1 at every sensor, and p left out of params",
+            parameters.len(),
+            2 * parameters.len(),
+            spec.run.max_lifted()
+        ));
+    }
     let (objective_spec, mut choice) = spec.objective(model, y, u)?;
-    let objective = Objective::new(model, &objective_spec, &parameters, y, u)?;
+    let objective = Objective::new(model, &objective_spec, &parameters, y, u, score)?;
     let theta0 = objective.theta0.clone();
     let f0 = objective.start_cost;
 
@@ -323,7 +383,10 @@ pub fn fit(
         .map(|(k, p)| {
             let estimate = p.value(theta[k]);
             let se_theta = available[k].then(|| covariance[(k, k)].sqrt());
-            let robust_theta = available[k].then(|| robust[(k, k)].max(0.0).sqrt());
+            let robust_theta = robust
+                .as_ref()
+                .filter(|_| available[k])
+                .map(|r| r[(k, k)].max(0.0).sqrt());
             FittedParameter {
                 name: p.name(),
                 configured: p.configured(model),
@@ -356,8 +419,8 @@ pub fn fit(
     // What the fit estimated is not what its check may blame (docs/theory.md §14).
     let estimated = Fitted {
         p: spec.params.contains(&ParamGroup::P),
-        q: spec.params.contains(&ParamGroup::Q),
-        m: spec.params.contains(&ParamGroup::M),
+        q: spec.params.iter().any(|g| g.key() == Some("Q")),
+        m: spec.params.iter().any(|g| g.key() == Some("M")),
     };
     if let Some(choice) = choice.as_mut() {
         if let Some(reference) = choice.reference {
@@ -399,287 +462,6 @@ pub fn fit(
             .map(|(k, p)| (*p, p.value(theta[k])))
             .collect(),
     })
-}
-
-/// `f(θ) = −ℓ(θ) / n_obs` over the data, with a quadratic wall outside the box.
-struct Objective<'a> {
-    model: &'a Model,
-    run: &'a CheckedSpec,
-    parameters: &'a [Parameter],
-    y: &'a [f64],
-    u: Option<&'a [f64]>,
-    theta0: Vec<f64>,
-    lower: Vec<f64>,
-    upper: Vec<f64>,
-    observations: usize,
-    /// `f(θ₀)`, the cost at the start; `f(θ₀) + CLIFF` is the cost where `ℓ = −∞`.
-    start_cost: f64,
-    evaluations: Arc<AtomicUsize>,
-}
-
-impl<'a> Objective<'a> {
-    /// The objective at `model`'s values; an error of the configured model itself (bad
-    /// inputs, a filter that breaks down) is the fit's error.
-    fn new(
-        model: &'a Model,
-        run_spec: &'a CheckedSpec,
-        parameters: &'a [Parameter],
-        y: &'a [f64],
-        u: Option<&'a [f64]>,
-    ) -> Result<Self> {
-        let theta0: Vec<f64> = parameters.iter().map(|p| p.start(model)).collect();
-        let (lower, upper) = parameters
-            .iter()
-            .zip(&theta0)
-            .map(|(p, &t)| match p {
-                Parameter::P => (-LOGIT_BOUND, LOGIT_BOUND),
-                _ => (t - LOG_RANGE, t + LOG_RANGE),
-            })
-            .unzip();
-        let observations = y.iter().filter(|v| !v.is_nan()).count();
-        if observations == 0 {
-            return Err(Error::Usage(
-                "fit: the measurements hold no value (every cell is a gap)".into(),
-            ));
-        }
-        let mut objective = Self {
-            model,
-            run: run_spec,
-            parameters,
-            y,
-            u,
-            theta0,
-            lower,
-            upper,
-            observations,
-            start_cost: f64::INFINITY,
-            evaluations: Arc::new(AtomicUsize::new(0)),
-        };
-        let start = objective
-            .model_at(&objective.theta0)
-            .ok_or_else(|| Error::Usage("fit: the configured Q or M is not a covariance".into()))?;
-        let loglik: f64 = run::log_likelihood(&start, run_spec, y, u)?.iter().sum();
-        objective.evaluations.fetch_add(1, Ordering::Relaxed);
-        objective.start_cost = -loglik / observations as f64;
-        Ok(objective)
-    }
-
-    /// `θ` moved into the box.
-    fn clamp(&self, theta: &[f64]) -> Vec<f64> {
-        theta
-            .iter()
-            .zip(self.lower.iter().zip(&self.upper))
-            .map(|(&t, (&lo, &hi))| t.clamp(lo, hi))
-            .collect()
-    }
-
-    fn on_boundary(&self, theta: &[f64], k: usize) -> bool {
-        theta[k] - self.lower[k] < ON_BOUNDARY || self.upper[k] - theta[k] < ON_BOUNDARY
-    }
-
-    /// The model with the values `θ` (inside the box), when its `Q` and `M` are covariances.
-    fn model_at(&self, theta: &[f64]) -> Option<Model> {
-        let mut model = self.model.clone();
-        for (p, &t) in self.parameters.iter().zip(theta) {
-            model = p.set(&model, p.value(t));
-        }
-        parameter::noise_is_valid(&model).then_some(model)
-    }
-
-    /// Each step's log density at `θ` (inside the box); `None` where `ℓ = −∞` (a candidate
-    /// that is no model, a filter that breaks down).
-    fn step_logliks(&self, theta: &[f64]) -> Option<Vec<f64>> {
-        self.evaluations.fetch_add(1, Ordering::Relaxed);
-        let model = self.model_at(theta)?;
-        run::log_likelihood(&model, self.run, self.y, self.u)
-            .ok()
-            .filter(|l| l.iter().all(|v| v.is_finite()))
-    }
-
-    /// `f(θ)`: `−ℓ / n_obs` at `θ` moved into the box, plus the wall outside it.
-    fn cost(&self, theta: &[f64]) -> f64 {
-        let inside = self.clamp(theta);
-        let wall: f64 = theta
-            .iter()
-            .zip(&inside)
-            .map(|(t, c)| 0.5 * WALL * (t - c).powi(2))
-            .sum();
-        let f = self
-            .step_logliks(&inside)
-            .map_or(self.start_cost + CLIFF, |l| {
-                -l.iter().sum::<f64>() / self.observations as f64
-            });
-        f + wall
-    }
-
-    /// The points `θ ± h e_k`, `k = 0..d`, in that order.
-    fn plus_minus(theta: &[f64], h: f64) -> Vec<Vec<f64>> {
-        (0..theta.len())
-            .flat_map(|k| {
-                [h, -h].map(|step| {
-                    let mut point = theta.to_vec();
-                    point[k] += step;
-                    point
-                })
-            })
-            .collect()
-    }
-
-    /// The Hessian of `−ℓ` at `θ` (step `HESSIAN_STEP`) and the scores of each step,
-    /// `∂ℓ_t/∂θ` (step `GRADIENT_STEP`), every filter run in parallel.
-    fn curvature(&self, theta: &[f64]) -> Curvature {
-        let d = theta.len();
-        let h = HESSIAN_STEP;
-        let mut points = vec![theta.to_vec()];
-        points.extend(Self::plus_minus(theta, h));
-        let pairs: Vec<(usize, usize)> = (0..d)
-            .flat_map(|j| (j + 1..d).map(move |k| (j, k)))
-            .collect();
-        for &(j, k) in &pairs {
-            for (sj, sk) in [(h, h), (h, -h), (-h, h), (-h, -h)] {
-                let mut point = theta.to_vec();
-                point[j] += sj;
-                point[k] += sk;
-                points.push(point);
-            }
-        }
-        points.extend(Self::plus_minus(theta, GRADIENT_STEP));
-        let values: Vec<Option<Vec<f64>>> = points
-            .par_iter()
-            .map(|p| self.step_logliks(&self.clamp(p)))
-            .collect();
-        let total = |v: &Option<Vec<f64>>| v.as_ref().map_or(f64::NEG_INFINITY, |l| l.iter().sum());
-        let centre = total(&values[0]);
-        let mut hessian = DMatrix::zeros(d, d);
-        for k in 0..d {
-            let (plus, minus) = (total(&values[1 + 2 * k]), total(&values[2 + 2 * k]));
-            hessian[(k, k)] = -(plus - 2.0 * centre + minus) / (h * h);
-        }
-        let mut at = 1 + 2 * d;
-        for &(j, k) in &pairs {
-            let [pp, pm, mp, mm] = [0, 1, 2, 3].map(|o| total(&values[at + o]));
-            hessian[(j, k)] = -(pp - pm - mp + mm) / (4.0 * h * h);
-            hessian[(k, j)] = hessian[(j, k)];
-            at += 4;
-        }
-        let steps = values[0].as_ref().map_or(0, Vec::len);
-        let mut scores = DMatrix::zeros(steps, d);
-        for k in 0..d {
-            if let (Some(plus), Some(minus)) = (&values[at + 2 * k], &values[at + 2 * k + 1]) {
-                for t in 0..steps {
-                    scores[(t, k)] = (plus[t] - minus[t]) / (2.0 * GRADIENT_STEP);
-                }
-            }
-        }
-        Curvature { hessian, scores }
-    }
-}
-
-/// The Hessian of `−ℓ` and the per-step scores at the optimum.
-struct Curvature {
-    hessian: DMatrix<f64>,
-    /// `T × d`: row `t` is `∂ℓ_t/∂θ`.
-    scores: DMatrix<f64>,
-}
-
-impl Curvature {
-    /// Why each parameter has no interval (`None`: it has one), the covariance `H⁻¹` of `θ̂`
-    /// and the robust one `H⁻¹ B H⁻¹` (`B = Σ_t s_t s_tᵀ`), over the parameters with an
-    /// interval (zero elsewhere). A parameter on the boundary of its box has none, and so has
-    /// one whose interval would reach past the box (the data do not bound it inside its
-    /// range); while the Hessian of the others is not positive definite, the one that weighs
-    /// most in its least curved direction has none either. One parameter is set aside at a
-    /// time, and the others' figures are those without it.
-    fn covariances(
-        &self,
-        objective: &Objective,
-        theta: &[f64],
-    ) -> (Vec<Option<NoInterval>>, DMatrix<f64>, DMatrix<f64>) {
-        let d = theta.len();
-        let finite = self.hessian.iter().all(|v| v.is_finite());
-        let mut missing: Vec<Option<NoInterval>> = (0..d)
-            .map(|k| {
-                if objective.on_boundary(theta, k) {
-                    Some(NoInterval::Boundary)
-                } else if !finite {
-                    Some(NoInterval::Flat)
-                } else {
-                    None
-                }
-            })
-            .collect();
-        loop {
-            let kept: Vec<usize> = (0..d).filter(|&k| missing[k].is_none()).collect();
-            if kept.is_empty() {
-                return (missing, DMatrix::zeros(d, d), DMatrix::zeros(d, d));
-            }
-            let h = self.hessian.select_rows(&kept).select_columns(&kept);
-            let Some(chol) = h.clone().cholesky() else {
-                let eigen = h.symmetric_eigen();
-                let weakest = eigen.eigenvalues.imin();
-                let column: DVector<f64> = eigen.eigenvectors.column(weakest).into();
-                missing[kept[column.iamax()]] = Some(NoInterval::Flat);
-                continue;
-            };
-            let inverse = chol.inverse();
-            let unbounded = kept.iter().enumerate().find(|&(a, &k)| {
-                let half = Z_95 * inverse[(a, a)].sqrt();
-                theta[k] - half < objective.lower[k] || theta[k] + half > objective.upper[k]
-            });
-            if let Some((_, &k)) = unbounded {
-                missing[k] = Some(NoInterval::Boundary);
-                continue;
-            }
-            let s = self.scores.select_columns(&kept);
-            let robust = &inverse * (s.transpose() * &s) * &inverse;
-            let mut covariance = DMatrix::zeros(d, d);
-            let mut sandwich = DMatrix::zeros(d, d);
-            for (a, &j) in kept.iter().enumerate() {
-                for (c, &k) in kept.iter().enumerate() {
-                    covariance[(j, k)] = inverse[(a, c)];
-                    sandwich[(j, k)] = robust[(a, c)];
-                }
-            }
-            return (missing, covariance, sandwich);
-        }
-    }
-}
-
-/// Why a parameter has no interval.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum NoInterval {
-    /// At the edge of its range, or so weakly bounded by the data that its interval would
-    /// reach past it (`p → 1` where nothing is lost, a variance `→ 0`).
-    Boundary,
-    /// The log-likelihood is flat or not concave in a direction it weighs most in.
-    Flat,
-}
-
-impl CostFunction for &Objective<'_> {
-    type Param = Vec<f64>;
-    type Output = f64;
-
-    fn cost(&self, theta: &Self::Param) -> std::result::Result<f64, argmin::core::Error> {
-        Ok(Objective::cost(self, theta))
-    }
-}
-
-impl Gradient for &Objective<'_> {
-    type Param = Vec<f64>;
-    type Gradient = Vec<f64>;
-
-    /// Central differences, the `2d` filter runs in parallel.
-    fn gradient(&self, theta: &Self::Param) -> std::result::Result<Vec<f64>, argmin::core::Error> {
-        let points = Objective::plus_minus(theta, GRADIENT_STEP);
-        let costs: Vec<f64> = points
-            .par_iter()
-            .map(|p| Objective::cost(self, p))
-            .collect();
-        Ok(costs
-            .chunks(2)
-            .map(|pm| (pm[0] - pm[1]) / (2.0 * GRADIENT_STEP))
-            .collect())
-    }
 }
 
 /// Calls the progress callback after each iteration; its error stops the optimiser and is

@@ -673,6 +673,22 @@ impl Model {
         model
     }
 
+    /// Whether the two models give every subsystem the same parameters, arrival probability
+    /// and sensor at every step, however their parameter sets are numbered.
+    pub fn same_parameters(&self, other: &Model) -> bool {
+        self.subsystems == other.subsystems
+            && self.windows.len() == other.windows.len()
+            && self.windows.iter().zip(&other.windows).all(|(a, b)| {
+                a.first == b.first
+                    && a.p == b.p
+                    && a.measured == b.measured
+                    && a.ids
+                        .iter()
+                        .zip(&b.ids)
+                        .all(|(&x, &y)| self.params[x as usize] == other.params[y as usize])
+            })
+    }
+
     /// Whether a parameter (`A`…`Q` or `p`) varies in time and in space.
     pub fn variation(&self, key: &str) -> (bool, bool) {
         let (mut time, mut space) = (false, false);

@@ -29,7 +29,7 @@ fn chain_with(q: [f64; 2], m: [f64; 2]) -> String {
 }
 
 /// Central-difference gradient and Hessian of `f` at `x`.
-fn derivatives(f: &dyn Fn(&[f64]) -> f64, x: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
+pub fn derivatives(f: &dyn Fn(&[f64]) -> f64, x: &[f64]) -> (DVector<f64>, DMatrix<f64>) {
     let d = x.len();
     let at = |steps: &[(usize, f64)]| {
         let mut p = x.to_vec();

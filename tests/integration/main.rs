@@ -17,6 +17,7 @@ mod estimator;
 mod evaluate_cli;
 mod fit;
 mod fit_band;
+mod fit_each;
 mod flags;
 mod gaps;
 mod hold_out;

@@ -1,8 +1,9 @@
 //! The shipped real recording (`data/sparkling/`, the README's "A real recording"): the file
 //! is what its SOURCE.md says, and the README's steps on it give what the README says: `check`
 //! warns of nothing (p = 1), the joint filter scores as the exact centralized one on readings
-//! held out of both, the verdict names the noise that differs by depth, and a model whose
-//! `Q` is each depth's own no longer does, and claims honest variances.
+//! held out of both, the verdict names the noise that differs by depth, and the model `fit`
+//! gives each depth's own `Q` (`--params 'Q[i],M'`) no longer does, and claims honest
+//! variances.
 
 use std::path::{Path, PathBuf};
 
@@ -49,27 +50,26 @@ fn the_recording_is_what_its_source_says() {
     assert_eq!(readings[19][0], 4.615);
 }
 
-/// `model.toml` with each depth's own `Q`: the mean square of the change between successive
-/// readings (the README's awk line), and `M` as the README's fit gives it.
-fn by_depth(dir: &Path) -> PathBuf {
-    let mut text = std::fs::read_to_string(lake("model.toml"))
-        .unwrap()
-        .replace("M = 0.01", "M = 1.65e-5");
-    for (i, series) in readings().iter().enumerate() {
-        let changes: Vec<f64> = series
-            .windows(2)
-            .filter(|w| !w[0].is_nan() && !w[1].is_nan())
-            .map(|w| w[1] - w[0])
-            .collect();
-        let q = changes.iter().map(|d| d * d).sum::<f64>() / changes.len() as f64;
-        text += &format!(
-            "\n[[override]]\nsubsystems = [{0}, {0}]\nQ = {q:.3e}\n",
-            i + 1
-        );
-    }
+/// `model.toml` with each depth's own `Q`, and `M`, as the README's `fit --params 'Q[i],M'`
+/// gives it: the fitted config and the report.
+fn by_depth(dir: &Path) -> (PathBuf, serde_json::Value) {
     let path = dir.join("by-depth.toml");
-    std::fs::write(&path, text).unwrap();
-    path
+    let out = sisfilt()
+        .arg("fit")
+        .arg("--config")
+        .arg(lake("model.toml"))
+        .arg("--meas")
+        .arg(lake("measurements.csv"))
+        .args(["--params", "Q[i],M", "--format", "json", "-q", "--out"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (path, serde_json::from_slice(&out.stdout).unwrap())
 }
 
 /// `estimate --hold-out 0.1` of `config` with `filter`: its held-out scores and its warnings.
@@ -127,7 +127,21 @@ fn the_readmes_steps_on_the_lake_give_what_it_says() {
     assert!(warnings.iter().any(|w| stand_out(&w)), "{warnings:?}");
     assert_eq!(warnings.len(), 2, "{warnings:?}");
 
-    let (own, warnings) = held_out(&by_depth(dir.path()), "joint", dir.path());
+    let (by_depth, report) = by_depth(dir.path());
+    // Each depth's own Q, with an interval, from 2.7e-4 at 18 m to 6.9e-2 in the thermocline.
+    let parameters = report["parameters"].as_array().unwrap();
+    let q: Vec<f64> = (parameters.iter().skip(1))
+        .map(|p| p["estimate"].as_f64().unwrap())
+        .collect();
+    assert_eq!(q.len(), 20);
+    assert!(parameters.iter().skip(1).all(|p| p["ci_low"].is_f64()));
+    let (lo, hi) = q
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
+    assert!(lo < 1e-3 && hi > 5e-2, "{q:?}");
+    let loglik = report["loglik"].as_f64().unwrap();
+    assert!(loglik > 42_000.0, "{loglik}");
+    let (own, warnings) = held_out(&by_depth, "joint", dir.path());
     assert_eq!(
         warnings.len(),
         1,

@@ -117,7 +117,8 @@ G = [[0.1, 0.4], [-0.2, 0.2]]
 /// Independent dense `A_eff`, `U_eff` at time `t`: unknowns `[w(1..N); v(1..N)]` of
 /// (P2) `w = D x + G v + H u`, (P3) `v⁺(i) = w⁺(i−1)`, `v⁻(i) = w⁻(i+1)`, (P4) zero ends.
 pub fn dense_lifted(model: &Model, t: usize) -> (DMatrix<f64>, DMatrix<f64>) {
-    let (n, m, s, big_n, p) = (2, 1, 2, model.subsystems, 1);
+    let dims = model.dims;
+    let (n, m, s, big_n, p) = (dims.n, dims.m, dims.s(), model.subsystems, dims.plus);
     let size = 2 * big_n * s;
     let mut eq = DMatrix::zeros(size, size);
     let w = |i: usize, k: usize| i * s + k;
