@@ -260,11 +260,7 @@ impl Fit {
             parameter.write(&mut raw, value);
         }
         for key in ["Q", "M"] {
-            let each = |p: &(Parameter, f64)| match p.0 {
-                Parameter::QOf { .. } => key == "Q",
-                Parameter::MOf { .. } => key == "M",
-                _ => false,
-            };
+            let each = |(p, _): &(Parameter, f64)| p.per_subsystem() && p.key() == Some(key);
             if self.estimates.iter().any(each) {
                 parameter::write_per_subsystem(&mut raw, &self.model, key);
             }

@@ -65,7 +65,7 @@ type Scored = (f64, Vec<f64>);
 
 impl ScoreMode {
     /// `∂(−ℓ)/∂θ` at `θ` (inside the box); `None` where `ℓ = −∞`.
-    fn parts_at(&self, objective: &Objective, theta: &[f64]) -> Option<Vec<f64>> {
+    fn cost_gradient(&self, objective: &Objective, theta: &[f64]) -> Option<Vec<f64>> {
         let (_, gradient) = objective.scored(self, theta)?;
         Some(gradient.iter().map(|g| -g).collect())
     }
@@ -314,7 +314,7 @@ impl<'a> Objective<'a> {
             .par_iter()
             .map(|p| {
                 let inside = self.clamp(p);
-                let gradient = mode.parts_at(self, &inside);
+                let gradient = mode.cost_gradient(self, &inside);
                 gradient.filter(|_| inside == *p)
             })
             .collect();

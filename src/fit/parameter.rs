@@ -105,6 +105,11 @@ impl Parameter {
         }
     }
 
+    /// One value for one subsystem (`QOf`, `MOf`).
+    pub fn per_subsystem(&self) -> bool {
+        matches!(self.entry(), Some((_, Some(_), _)))
+    }
+
     /// The matrix (`Q` or `M`) a variance is of; `None` for `p`.
     pub fn key(&self) -> Option<&'static str> {
         self.entry().map(|(key, _, _)| key)

@@ -7,7 +7,7 @@ use nalgebra::DVector;
 use sisfilt::filter::{Dropouts, FilterKind};
 use sisfilt::fit::{FitSpec, ParamGroup, fit};
 
-use crate::common::{model_from, one_error_line, simulate_steps, sisfilt, write_file};
+use crate::common::{model_from, one_error_line, run_ok_in, simulate_steps, sisfilt, write_file};
 use crate::fit::derivatives;
 use crate::reference_filters::{dense_log_density, lose_some};
 
@@ -205,30 +205,24 @@ fn the_command_line_fits_each_subsystems_noise() {
     );
     let text = std::fs::read_to_string(dir.path().join("fitted.toml")).unwrap();
     assert_eq!(text.matches("[[override]]").count(), 5, "{text}");
-    let estimated = run(&[
-        "estimate",
-        "--config",
-        "fitted.toml",
-        "--meas",
-        "sim/measurements.csv",
-        "--out",
-        "e.csv",
-    ]);
-    assert!(
-        estimated.status.success(),
-        "{}",
-        String::from_utf8_lossy(&estimated.stderr)
+    run_ok_in(
+        dir.path(),
+        &[
+            "estimate",
+            "--config",
+            "fitted.toml",
+            "--meas",
+            "sim/measurements.csv",
+            "--out",
+            "e.csv",
+        ],
     );
+    let fit_of = |config: &str, params: &str| {
+        let args = ["fit", "--config", config, "--meas", "sim/measurements.csv"];
+        run(&[&args[..], &["--params", params]].concat())
+    };
 
-    let both = run(&[
-        "fit",
-        "--config",
-        "five.toml",
-        "--meas",
-        "sim/measurements.csv",
-        "--params",
-        "Q,Q[i]",
-    ]);
+    let both = fit_of("five.toml", "Q,Q[i]");
     assert_eq!(both.status.code(), Some(2));
     let line = one_error_line(&both.stderr);
     assert!(
@@ -241,29 +235,13 @@ fn the_command_line_fits_each_subsystems_noise() {
         "in_time.toml",
         &format!("{FIVE}[[override]]\nsteps = [1, 10]\nQ = 0.05\n"),
     );
-    let in_time = run(&[
-        "fit",
-        "--config",
-        "in_time.toml",
-        "--meas",
-        "sim/measurements.csv",
-        "--params",
-        "M[i]",
-    ]);
+    let in_time = fit_of("in_time.toml", "M[i]");
     assert!(
         in_time.status.success(),
         "{}",
         String::from_utf8_lossy(&in_time.stderr)
     );
-    let in_time = run(&[
-        "fit",
-        "--config",
-        "in_time.toml",
-        "--meas",
-        "sim/measurements.csv",
-        "--params",
-        "Q[i]",
-    ]);
+    let in_time = fit_of("in_time.toml", "Q[i]");
     assert_eq!(in_time.status.code(), Some(2));
     let line = one_error_line(&in_time.stderr);
     assert!(
